@@ -1,0 +1,1 @@
+"""Datasets: COLMAP scenes through pycolmap, lazily cached images, cameras and sparse points."""

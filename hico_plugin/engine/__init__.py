@@ -1,0 +1,1 @@
+"""Training engine: trainer, optimisers, checkpoints, callbacks; knows nothing about Gaussians."""

@@ -1,0 +1,1 @@
+"""Image and geometry metrics: PSNR, SSIM, LPIPS, depth / normal error, surface F1."""

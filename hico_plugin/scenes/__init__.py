@@ -1,0 +1,1 @@
+"""Built-in scenes with exact geometry, rendered by an independent analytic ray caster."""

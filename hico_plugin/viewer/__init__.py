@@ -1,0 +1,1 @@
+"""Live viser viewer built on a render function."""
