@@ -1,1 +1,39 @@
-"""Training engine: trainer, optimisers, checkpoints, callbacks; knows nothing about Gaussians."""
+"""Training engine: trainer, optimisers, checkpoints, callbacks; knows nothing about Gaussians.
+
+Public API (see each module for details)::
+
+    TrainerConfig(...).setup(model=..., dataset=..., callbacks=[...]) -> Trainer; Trainer.train()
+    load_run(config_path, checkpoint=None, device=None) -> (config, model, dataset)
+    Optimizers(param_groups, schedules); Optimizers.resize_group(name, new_params, kept_rows, num_new)
+    save_config(config, path) / load_config(path)
+    distributed: is_main_process(), all_reduce_sum_(t), all_reduce_mean_(t), get_rank(), get_world_size()
+"""
+
+from hico_plugin.engine.callbacks import TrainerCallback
+from hico_plugin.engine.config_io import load_config, save_config
+from hico_plugin.engine.distributed import all_reduce_mean_, all_reduce_sum_, is_main_process
+from hico_plugin.engine.evaluation import evaluate, write_eval_json
+from hico_plugin.engine.optimizers import Optimizers
+from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainableModel, TrainBatch, TrainDataset
+from hico_plugin.engine.trainer import Trainer, TrainerConfig, TrainResult, load_run
+
+__all__ = [
+    "LRSchedule",
+    "Optimizers",
+    "StepOutput",
+    "TrainBatch",
+    "TrainDataset",
+    "TrainResult",
+    "TrainableModel",
+    "Trainer",
+    "TrainerCallback",
+    "TrainerConfig",
+    "all_reduce_mean_",
+    "all_reduce_sum_",
+    "evaluate",
+    "is_main_process",
+    "load_config",
+    "load_run",
+    "save_config",
+    "write_eval_json",
+]

@@ -1,0 +1,146 @@
+"""Trainer callbacks: progress bar, JSON-lines metrics log, TensorBoard. They run on rank 0 only.
+
+A callback overrides any of the hooks; the viewer joins the same way (``trainer.add_callback``).
+``metrics`` holds floats: the step's loss and model metrics (averaged over ranks), ``lr/<group>``,
+the model's ``stats()``, ``it_per_s`` and ``train_seconds``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from hico_plugin.engine.trainer import Trainer
+
+
+class TrainerCallback:
+    """Hooks the Trainer calls on rank 0; every one defaults to doing nothing."""
+
+    def on_train_start(self, trainer: "Trainer", step: int) -> None:
+        pass
+
+    def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
+        pass
+
+    def on_eval(self, step: int, results: dict[str, Any]) -> None:
+        pass
+
+    def on_train_end(self, step: int) -> None:
+        pass
+
+
+class MetricsLog(TrainerCallback):
+    """Appends one JSON object per logged step / eval to ``RUN/metrics.jsonl``.
+
+    Step lines: ``{"step", "time", <metrics>}``; eval lines: ``{"step", "time", "eval/<key>": ...}``.
+    A resumed run appends to the same file.
+    """
+
+    def __init__(self, path: Path, log_every: int):
+        self.path = path
+        self.log_every = max(1, log_every)
+        self._stream: IO[str] | None = None
+
+    def _write(self, record: dict[str, Any]) -> None:
+        if self._stream is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._stream = self.path.open("a", encoding="utf-8")
+        self._stream.write(json.dumps(record, allow_nan=True) + "\n")
+        self._stream.flush()
+
+    def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
+        if step % self.log_every == 0 or metrics.get("skipped"):
+            self._write({"step": step, "time": time.time(), **metrics})
+
+    def on_eval(self, step: int, results: dict[str, Any]) -> None:
+        self._write({"step": step, "time": time.time(), **{f"eval/{k}": v for k, v in results.items()}})
+
+    def on_train_end(self, step: int) -> None:
+        if self._stream is not None:
+            self._stream.close()
+            self._stream = None
+
+
+class TensorBoardLog(TrainerCallback):
+    """Scalars to TensorBoard event files in ``RUN/tensorboard`` (needs the ``tensorboard`` package)."""
+
+    def __init__(self, log_dir: Path, log_every: int):
+        from torch.utils.tensorboard import SummaryWriter  # imports tensorboard; checked by the caller
+
+        self.writer = SummaryWriter(log_dir=str(log_dir))
+        self.log_every = max(1, log_every)
+
+    def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
+        if step % self.log_every == 0:
+            for key, value in metrics.items():
+                if isinstance(value, (int, float)) and math.isfinite(value):
+                    self.writer.add_scalar(f"train/{key}", value, step)
+
+    def on_eval(self, step: int, results: dict[str, Any]) -> None:
+        for key, value in results.items():
+            if isinstance(value, (int, float)) and math.isfinite(value):
+                self.writer.add_scalar(f"eval/{key}", value, step)
+
+    def on_train_end(self, step: int) -> None:
+        self.writer.close()
+
+
+# Shown in the progress bar when present, in this order, with their short labels.
+_BAR_FIELDS = (("loss", "loss"), ("psnr", "psnr"), ("num_anchors", "anchors"), ("num_gaussians", "gaussians"))
+
+
+def format_bar_metrics(metrics: dict[str, float]) -> str:
+    """A compact one-line summary: loss terms, PSNR, #anchors, #Gaussians."""
+    parts = []
+    for key, label in _BAR_FIELDS:
+        if key in metrics:
+            value = metrics[key]
+            parts.append(f"{label} {int(value):,}" if key.startswith("num_") else f"{label} {value:.4g}")
+    parts += [f"{k[5:]} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/")]
+    return " | ".join(parts)
+
+
+class ProgressBar(TrainerCallback):
+    """A rich progress bar: step / total, it/s, ETA and ``format_bar_metrics``."""
+
+    def __init__(self, max_steps: int, refresh_every: int = 1, stream: IO[str] | None = None):
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.max_steps = max_steps
+        self.refresh_every = max(1, refresh_every)
+        self.progress = Progress(
+            TextColumn("[bold]train"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[speed]}"),
+            TimeRemainingColumn(),
+            TextColumn("{task.fields[summary]}"),
+            console=Console(file=stream or sys.stdout),
+            transient=False,
+        )
+        self.task = None
+
+    def on_train_start(self, trainer: "Trainer", step: int) -> None:
+        self.progress.start()
+        self.task = self.progress.add_task("train", total=self.max_steps, completed=step, speed="", summary="")
+
+    def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
+        if self.task is None or (step + 1) % self.refresh_every:
+            return
+        speed = f"{metrics['it_per_s']:.2f} it/s" if "it_per_s" in metrics else ""
+        self.progress.update(self.task, completed=step + 1, speed=speed, summary=format_bar_metrics(metrics))
+
+    def on_eval(self, step: int, results: dict[str, Any]) -> None:
+        if self.task is not None and results.get("psnr") is not None:
+            self.progress.console.print(f"step {step + 1}: test PSNR {results['psnr']:.2f} dB")
+
+    def on_train_end(self, step: int) -> None:
+        if self.task is not None:
+            self.progress.stop()
+            self.task = None

@@ -1,0 +1,155 @@
+"""What the engine asks of a model and of a dataset, and what it hands them.
+
+The engine knows nothing about Gaussians. A model is an ``nn.Module`` that also implements
+``TrainableModel``; a dataset implements ``TrainDataset``. Both are structural protocols, so the real
+HiCo model / COLMAP dataset and the toy model of the tests satisfy them without inheriting anything.
+
+One training step, as the engine runs it (``step`` counts optimizer steps from 0)::
+
+    batch  = B training views (the same global batch is drawn on every rank, then split)
+    output = model.train_step(batch, step)        # loss = MEAN over the batch's images
+    output.loss.backward()
+    model.after_backward(step, output)            # e.g. densification statistics from grads
+    gradients averaged over ranks (no-op on one process)
+    optimizers.step(step)                         # per-group LR from the schedules, then Adam
+    model.after_optimizer_step(step, optimizers)  # e.g. grow / prune; may resize parameters
+
+Because ``loss`` is the mean over the batch and gradients are averaged over ranks, P workers x batch b
+give the same update as 1 worker x batch P*b.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+from torch import Tensor, nn
+
+from hico_plugin.cameras import Camera, Cameras
+
+if TYPE_CHECKING:
+    from hico_plugin.engine.optimizers import Optimizers
+
+
+@dataclass(frozen=True)
+class LRSchedule:
+    """Learning rate of one parameter group as a pure function of the optimizer step.
+
+    Linear warmup from ``lr_pre_warmup`` to ``lr_init`` over ``warmup_steps``, then log-linear
+    (exponential) interpolation from ``lr_init`` to ``lr_final`` over the following
+    ``max_steps - warmup_steps`` steps, then held at ``lr_final``. ``lr_final=None`` keeps ``lr_init``.
+    ``lr_init=0`` freezes the group (e.g. anchor positions in Octree-GS).
+    """
+
+    lr_init: float
+    lr_final: float | None = None
+    max_steps: int = 30_000
+    warmup_steps: int = 0
+    lr_pre_warmup: float = 0.0
+
+    def lr(self, step: int) -> float:
+        if self.warmup_steps > 0 and step < self.warmup_steps:
+            return self.lr_pre_warmup + (self.lr_init - self.lr_pre_warmup) * step / self.warmup_steps
+        if self.lr_final is None or self.lr_init == 0.0 or self.lr_final == self.lr_init:
+            return self.lr_init
+        if self.lr_final <= 0.0:
+            raise ValueError(f"lr_final must be > 0 for log-linear decay, got {self.lr_final}")
+        decay_steps = max(1, self.max_steps - self.warmup_steps)
+        progress = min(max((step - self.warmup_steps) / decay_steps, 0.0), 1.0)
+        return self.lr_init ** (1.0 - progress) * self.lr_final**progress
+
+
+@dataclass
+class TrainBatch:
+    """The views one rank trains on in one step.
+
+    cameras: B cameras (``camera.index`` is the dataset index)
+    images:  [B, H, W, 3] float32 in [0, 1]
+    indices: [B] long, dataset indices of the views
+    gt:      optional per-view ground truth stacked over the batch where every view has it,
+             e.g. ``{"depth": [B, H, W, 1], "normal": [B, H, W, 3], "mask": [B, H, W, 1]}``
+    """
+
+    cameras: list[Camera]
+    images: Tensor
+    indices: Tensor
+    gt: dict[str, Tensor] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+
+@dataclass
+class StepOutput:
+    """What ``train_step`` returns.
+
+    loss:    scalar tensor with grad, the MEAN over the batch's images
+    metrics: scalars to log / show (``"psnr"``, ``"loss/rgb"``, ...); tensors are detached + averaged
+    images:  optional images for the logs, ``name -> [H, W, C]``
+    extras:  anything ``after_backward`` needs (e.g. the rasterizer's means2d with its grad)
+    """
+
+    loss: Tensor
+    metrics: dict[str, float | Tensor] = field(default_factory=dict)
+    images: dict[str, Tensor] = field(default_factory=dict)
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+@runtime_checkable
+class TrainableModel(Protocol):
+    """A model the Trainer can drive (an ``nn.Module`` with these methods).
+
+    ``state_dict`` / ``load_state_dict`` must carry everything needed to resume exactly, including
+    densification accumulators and the current parameter shapes: ``load_state_dict`` on a freshly
+    built model must resize its parameters to the checkpoint's shapes. The engine rebuilds the
+    optimizers from ``param_groups()`` after loading, so replaced ``nn.Parameter`` objects are fine.
+    """
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Trainable parameters by group name; each group gets its own Adam and LR schedule."""
+        ...
+
+    def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
+        """One schedule per group of ``param_groups()`` for a run of ``max_steps`` optimizer steps."""
+        ...
+
+    def train_step(self, batch: TrainBatch, step: int) -> StepOutput:
+        ...
+
+    def after_backward(self, step: int, output: StepOutput) -> None:
+        """Called after ``loss.backward()`` (before gradient averaging). Statistics that must agree
+        across workers are reduced here with ``engine.distributed.all_reduce_sum_`` / ``_mean_``."""
+        ...
+
+    def after_optimizer_step(self, step: int, optimizers: "Optimizers") -> None:
+        """Called after the update; may grow / prune through ``optimizers.resize_group``. It runs on
+        every rank with identical inputs, so decisions are identical without communication."""
+        ...
+
+    def eval_view(self, camera: Camera, image: Tensor, gt: dict[str, Tensor]) -> dict[str, Any]:
+        """Metrics of one test view: ``image`` [H, W, 3] float in [0, 1], ``gt`` as in TrainBatch
+        (unbatched). Scalar values (float / 0-d tensor / None = unavailable) are averaged over views;
+        ``"render_seconds"`` (the render alone) gives fps; other values (images) are ignored.
+        Runs on rank 0 only: must not use collectives."""
+        ...
+
+    def stats(self) -> dict[str, float]:
+        """Counters for the progress bar and logs, e.g. ``num_anchors``, ``num_gaussians``."""
+        ...
+
+
+@runtime_checkable
+class TrainDataset(Protocol):
+    """The dataset the engine reads (``hico_plugin.data.Dataset`` satisfies it).
+
+    Optional methods, used when present: ``gt_depth(i) -> [H, W, 1] | None``,
+    ``gt_normal(i) -> [H, W, 3] | None``, ``mask(i) -> [H, W, 1] | None``.
+    """
+
+    cameras: Cameras
+    train_indices: list[int] | Tensor
+    test_indices: list[int] | Tensor
+
+    def image(self, i: int) -> Any:
+        """uint8 [H, W, 3] (numpy array or tensor) of dataset view ``i``."""
+        ...
