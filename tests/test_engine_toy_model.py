@@ -2,8 +2,8 @@
 
 The toy "renders" N coloured 2-D blobs, shifted by the camera's x/y translation, through a small
 colour MLP. It has what the real model has that matters to the engine: two parameter groups, one of
-which changes its row count when the model "densifies" (drop the least useful blob, clone the most
-useful one twice), densification statistics from per-view gradients reduced over workers, buffers in
+which changes its row count when the model "densifies" (split the most
+useful one in two halves), densification statistics from per-view gradients reduced over workers, buffers in
 the state dict, optional global-RNG use, and an optional NaN loss at chosen steps.
 """
 
@@ -62,8 +62,8 @@ class ToyModel(nn.Module):
 
     def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
         return {
-            "blobs": LRSchedule(0.05, 0.005, max_steps=max_steps),
-            "mlp": LRSchedule(0.01, 0.001, max_steps=max_steps, warmup_steps=3),
+            "blobs": LRSchedule(0.2, 0.02, max_steps=max_steps),
+            "mlp": LRSchedule(0.05, 0.005, max_steps=max_steps, warmup_steps=3),
         }
 
     def train_step(self, batch: TrainBatch, step: int) -> StepOutput:
@@ -91,10 +91,11 @@ class ToyModel(nn.Module):
     def after_optimizer_step(self, step: int, optimizers: Optimizers) -> None:
         if (step + 1) % self.densify_every or step >= self.densify_until:
             return
-        worst, best = int(self.grad_accum.argmin()), int(self.grad_accum.argmax())
-        kept = torch.cat([torch.arange(worst), torch.arange(worst + 1, self.features.shape[0])])
+        # Split the blob with the largest statistic into two halves either side of it.
+        best = int(self.grad_accum.argmax())
+        kept = torch.cat([torch.arange(best), torch.arange(best + 1, self.features.shape[0])])
         with torch.no_grad():
-            new_features = torch.cat([self.features[kept], self.features[best].expand(2, 3)])
+            new_features = torch.cat([self.features[kept], 0.5 * self.features[best].expand(2, 3)])
             nudge = torch.tensor([[0.5, 0.0], [-0.5, 0.0]])
             new_centers = torch.cat([self.centers[kept], self.centers[best] + nudge])
         self.features = nn.Parameter(new_features)
@@ -199,6 +200,6 @@ def test_toy_densify_resizes_through_optimizers():
     before = model.features.detach().clone()
     model.after_optimizer_step(0, optimizers)
     assert model.features.shape == (7, 3)
-    assert torch.equal(model.features[:5], before[[0, 2, 3, 4, 5]])
-    assert torch.equal(model.features[5], before[2]) and torch.equal(model.features[6], before[2])
+    assert torch.equal(model.features[:5], before[[0, 1, 3, 4, 5]])
+    assert torch.equal(model.features[5], before[2] / 2) and torch.equal(model.features[6], before[2] / 2)
     assert optimizers.params("blobs")[0] is model.features

@@ -46,8 +46,6 @@ def _represent_object(dumper: yaml.SafeDumper, obj: Any) -> yaml.Node:
         return dumper.represent_mapping(f"{_DATACLASS_TAG}{cls.__module__}.{cls.__qualname__}", values)
     if isinstance(obj, PurePath):
         return dumper.represent_scalar("!path", str(obj))
-    if isinstance(obj, tuple):
-        return dumper.represent_sequence("!tuple", list(obj))
     if isinstance(obj, Enum):
         cls = type(obj)
         return dumper.represent_scalar(f"{_ENUM_TAG}{cls.__module__}.{cls.__qualname__}", obj.name)
@@ -55,6 +53,8 @@ def _represent_object(dumper: yaml.SafeDumper, obj: Any) -> yaml.Node:
 
 
 _ConfigDumper.add_multi_representer(object, _represent_object)
+# SafeDumper writes tuples as plain lists; the tag keeps them tuples.
+_ConfigDumper.add_representer(tuple, lambda dumper, value: dumper.represent_sequence("!tuple", list(value)))
 
 
 def _import(qualified: str, loader: _ConfigLoader) -> Any:

@@ -245,8 +245,8 @@ class Trainer:
             if isinstance(self.model, nn.Module):
                 dist_utils.broadcast_module_(self.model)
             self.optimizers = self._make_optimizers()
-        if self.is_main:
-            save_config(self.config, self.run_dir / "config.yml")
+        if self.is_main:  # resume / overwrite are one-off actions, not properties of the run
+            save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml")
 
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))
@@ -301,29 +301,31 @@ class Trainer:
         return self.last_checkpoint
 
     # ----------------------------------------------------------------- the step
-    def _reduce_step_scalars(self, output: StepOutput) -> tuple[dict[str, float], bool, bool, bool]:
-        """One all-reduce for the loss, the metrics (mean over ranks) and the control flags.
+    def _reduce_step_scalars(self, output: StepOutput) -> tuple[dict[str, float], bool]:
+        """One all-reduce for the loss, the metrics (means over ranks; the metric names must be the
+        same on every rank) and whether any rank's loss is non-finite.
 
-        Returns (metrics, loss finite on every rank, stop requested on any, checkpoint requested on any).
+        Returns (metrics, loss finite on every rank).
         """
         metric_names = sorted(output.metrics)
         values = [output.loss.detach().float().reshape(())]
         values += [torch.as_tensor(output.metrics[k], dtype=torch.float32).detach().reshape(-1).mean() for k in metric_names]
-        flags = [
-            float(not torch.isfinite(output.loss.detach()).all()),
-            float(self._stop_requested.is_set()),
-            float(self._checkpoint_requested.is_set()),
-        ]
-        vector = torch.cat([torch.stack([v.to(self.device) for v in values]), torch.tensor(flags, device=self.device)])
+        nonfinite = (~torch.isfinite(output.loss.detach())).any().float().reshape(())
+        vector = torch.stack([v.to(self.device) for v in values] + [nonfinite.to(self.device)])
         dist_utils.all_reduce_sum_(vector)
         vector = vector.cpu()
-        count = len(values)
-        means = (vector[:count] / self.world_size).tolist()
-        metrics = dict(zip(["loss", *metric_names], means))
-        nonfinite, stop, checkpoint = (vector[count:] > 0).tolist()
-        return metrics, not nonfinite, stop, checkpoint
+        means = (vector[:-1] / self.world_size).tolist()
+        return dict(zip(["loss", *metric_names], means)), bool(vector[-1] == 0)
 
-    def _train_step(self, step: int) -> tuple[dict[str, float], bool, bool, bool]:
+    def _control_flags(self) -> tuple[bool, bool]:
+        """(stop, checkpoint) requested on any rank; identical on every rank."""
+        flags = torch.tensor(
+            [float(self._stop_requested.is_set()), float(self._checkpoint_requested.is_set())], device=self.device
+        )
+        stop, checkpoint = (dist_utils.all_reduce_sum_(flags) > 0).tolist()
+        return stop, checkpoint
+
+    def _train_step(self, step: int) -> tuple[dict[str, float], bool]:
         positions = batch_positions(
             len(self.train_indices), self.config.batch_size * self.world_size, self.config.seed, step
         )
@@ -331,17 +333,17 @@ class Trainer:
         batch = make_batch(self.dataset, [self.train_indices[p] for p in mine], self.device)
         self.optimizers.zero_grad()
         output = self.model.train_step(batch, step)
-        metrics, finite, stop, checkpoint = self._reduce_step_scalars(output)
+        metrics, finite = self._reduce_step_scalars(output)
         if not finite:
             self.optimizers.zero_grad()
-            return metrics, False, stop, checkpoint
+            return metrics, False
         output.loss.backward()
         self.model.after_backward(step, output)
         dist_utils.average_gradients_(self.optimizers.all_params())
         lrs = self.optimizers.step(step)
         self.model.after_optimizer_step(step, self.optimizers)
         metrics.update({f"lr/{name}": lr for name, lr in lrs.items()})
-        return metrics, True, stop, checkpoint
+        return metrics, True
 
     # ----------------------------------------------------------------- the loop
     def train(self) -> TrainResult:
@@ -378,7 +380,7 @@ class Trainer:
             step = self.step
             start = time.perf_counter()
             with self.lock:
-                metrics, finite, stop, checkpoint = self._train_step(step)
+                metrics, finite = self._train_step(step)
             seconds = time.perf_counter() - start
             self.step += 1
             self.train_seconds += seconds
@@ -400,6 +402,7 @@ class Trainer:
                     f"training: {nonfinite_streak} non-finite losses in a row (last at step {step}); "
                     f"stopped without saving; the last good checkpoint is {self.last_checkpoint or 'none'}"
                 )
+            stop, checkpoint = self._control_flags()  # after the callbacks, which may ask for either
             if checkpoint or stop or (config.save_every and self.step % config.save_every == 0):
                 self._checkpoint_requested.clear()
                 self.save_checkpoint()

@@ -1,0 +1,58 @@
+"""config.yml: the whole config tree round-trips through save_config / load_config."""
+
+import enum
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.engine import TrainerConfig, load_config, save_config
+from hico_plugin.errors import HicoError
+
+
+class Kind(enum.Enum):
+    MEAN = "mean"
+    MAX = "max"
+
+
+@dataclass
+class Inner(InstantiateConfig):
+    kind: Kind = Kind.MEAN
+    sizes: tuple[int, ...] = (1, 2, 3)
+    weights: dict[str, float] = field(default_factory=lambda: {"rgb": 1.0, "normal": 0.05})
+
+
+@dataclass
+class Outer(InstantiateConfig):
+    inner: Inner = field(default_factory=Inner)
+    points: Path | None = None
+    layers: list[Inner] = field(default_factory=list)
+
+
+def test_round_trip_keeps_types(tmp_path):
+    config = TrainerConfig(
+        output_dir=Path("outputs/x"), max_steps=123,
+        model=Outer(inner=Inner(kind=Kind.MAX, sizes=(4,)), points=Path("/data/p.ply"), layers=[Inner()]),
+    )
+    path = save_config(config, tmp_path / "config.yml")
+    loaded = load_config(path)
+    assert loaded == config
+    assert type(loaded.model) is Outer and isinstance(loaded.output_dir, Path)
+    assert loaded.model.inner.sizes == (4,) and loaded.model.inner.kind is Kind.MAX
+    assert "!dataclass:test_engine_config.Outer" in path.read_text()
+
+
+def test_missing_fields_take_defaults_and_unknown_fields_are_errors(tmp_path):
+    path = tmp_path / "config.yml"
+    path.write_text("!dataclass:hico_plugin.engine.trainer.TrainerConfig\nmax_steps: 7\n")
+    assert load_config(path) == TrainerConfig(max_steps=7)
+    path.write_text("!dataclass:hico_plugin.engine.trainer.TrainerConfig\nmax_stepz: 7\n")
+    with pytest.raises(HicoError, match=r"config.yml: unknown field\(s\) max_stepz"):
+        load_config(path)
+    path.write_text("!dataclass:hico_plugin.nowhere.Config\n")
+    with pytest.raises(HicoError, match="cannot import 'hico_plugin.nowhere.Config'"):
+        load_config(path)
+    path.write_text("max_steps: [\n")
+    with pytest.raises(HicoError, match="not valid YAML"):
+        load_config(path)
