@@ -1,0 +1,82 @@
+"""hico-view: serve a finished run (or the built-in analytic demo scene) in the live viewer.
+
+    hico-view --load-config outputs/city-block/config.yml
+    hico-view --demo --viewer.port 7010
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tyro
+
+from hico_plugin.cli import run_cli
+from hico_plugin.errors import HicoError
+from hico_plugin.viewer import RunViewerState, ViewableModel, ViewerConfig, model_render_fn
+
+
+@dataclass
+class ViewArgs:
+    """Open a trained run in the browser viewer (no training)."""
+
+    load_config: Path | None = None
+    """The run's config.yml (written by hico-train next to its checkpoints)."""
+    checkpoint: Path | None = None
+    """A checkpoint to show instead of the run's latest."""
+    device: str | None = None
+    """Device to render on (default: the run's)."""
+    demo: bool = False
+    """Serve the analytic demo scene instead of a run (checks the viewer without training anything)."""
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
+
+
+def _eval_stats(config_path: Path, output_dir: Any) -> dict[str, Any]:
+    """The run's last evaluation (``eval.json`` in ns-eval layout) as ``eval/<metric>`` stats."""
+    for run_dir in (Path(output_dir) if output_dir else None, config_path.parent):
+        if run_dir is not None and (run_dir / "eval.json").is_file():
+            try:
+                results = json.loads((run_dir / "eval.json").read_text()).get("results", {})
+            except (OSError, ValueError):
+                return {}
+            return {f"eval/{k}": v for k, v in results.items() if isinstance(v, (int, float))}
+    return {}
+
+
+def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any]]:
+    """(model, dataset, initial stats) of ``--load-config`` or of ``--demo``."""
+    if args.demo:
+        from hico_plugin.viewer.demo import DemoDataset, DemoModel
+
+        return DemoModel(), DemoDataset(), {}
+    if args.load_config is None:
+        raise HicoError("--load-config: expected a run's config.yml (or pass --demo)")
+    if not args.load_config.is_file():
+        raise HicoError(f"--load-config: {args.load_config} is not a file (expected RUN/config.yml)")
+    from hico_plugin.engine import load_run
+
+    config, model, dataset = load_run(args.load_config, checkpoint=args.checkpoint, device=args.device)
+    if not isinstance(model, ViewableModel):
+        raise HicoError(
+            f"{args.load_config}: model {type(model).__name__} cannot be viewed "
+            "(it needs viewer_render(camera, options) and viewer_anchors())"
+        )
+    return model, dataset, _eval_stats(args.load_config, getattr(config, "output_dir", None))
+
+
+def main(args: ViewArgs) -> None:
+    model, dataset, stats = load_viewable_run(args)
+    state = RunViewerState(model, dataset, stats=stats)
+    viewer = args.viewer.setup(render_fn=model_render_fn(model), state=state)
+    print("viewer: Ctrl-C to stop", flush=True)
+    viewer.serve_forever()
+
+
+def entrypoint() -> None:
+    run_cli(lambda: main(tyro.cli(ViewArgs)))
+
+
+if __name__ == "__main__":
+    entrypoint()

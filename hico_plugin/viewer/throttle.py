@@ -1,0 +1,49 @@
+"""When to render and at what size: pure functions the render thread follows."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+RenderKind = Literal["preview", "full"]
+
+
+def next_resolution(last_render_seconds: float, target_seconds: float, current: int, minimum: int, maximum: int) -> int:
+    """The longest image side for the next preview render, so a render takes about ``target_seconds``.
+
+    Render time grows with the pixel count, i.e. with the square of the side, so the side is scaled by
+    sqrt(target / last). The step is limited to x0.5 .. x2 so one slow frame (a GC pause, training
+    holding the CPU) does not collapse the picture. The result is clamped to [minimum, maximum].
+    """
+    if minimum > maximum:
+        raise ValueError(f"next_resolution: minimum {minimum} > maximum {maximum}")
+    if not math.isfinite(last_render_seconds) or last_render_seconds <= 0.0:
+        scaled = 2.0 * current  # no usable measurement (e.g. a zero-time render): grow
+    else:
+        factor = math.sqrt(target_seconds / last_render_seconds)
+        scaled = current * min(max(factor, 0.5), 2.0)
+    return int(min(max(round(scaled), minimum), maximum))
+
+
+def plan_render(
+    now: float,
+    last_change_time: float,
+    version: int,
+    rendered_version: int,
+    rendered_full: bool,
+    settle_seconds: float,
+) -> RenderKind | None:
+    """What a client's view needs now.
+
+    ``version`` counts changes of what the client should see (camera moved, option changed, model
+    updated); ``rendered_version`` is the version of the picture on screen and ``rendered_full`` whether
+    that picture was a full-resolution one. While changes keep coming (the camera is moving, less than
+    ``settle_seconds`` since the last one) the view gets fast low-resolution previews; once it settles it
+    gets one full-resolution render, then nothing until the next change.
+    """
+    settled = now - last_change_time >= settle_seconds
+    if version != rendered_version:
+        return "full" if settled else "preview"
+    if not rendered_full and settled:
+        return "full"
+    return None
