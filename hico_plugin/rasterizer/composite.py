@@ -47,7 +47,12 @@ def composite_chunk(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     # restarts near zero per tile (a plain prefix difference would lose float32 precision).
     num_segs = pix_x.shape[0]
     totals = log_t.new_zeros(num_segs, log_t.shape[1]).index_add(0, seg_ids, log_t)
-    reset = torch.zeros_like(log_t).index_put((seg_starts[1:],), totals[:-1])
+    # Empty tiles share their start row with the next tile and add a zero total; trailing empty
+    # tiles start past the last row and are dropped.
+    inside = (seg_starts[1:] < log_t.shape[0])[:, None]
+    reset = torch.zeros_like(log_t).index_put(
+        (seg_starts[1:].clamp_max(log_t.shape[0] - 1),),
+        torch.where(inside, totals[:-1], torch.zeros_like(totals[:-1])), accumulate=True)
     log_t_after = torch.cumsum(log_t - reset, 0)  # log T after each Gaussian, within its tile
     drawn = log_t_after > LOG_T_MIN
     weight = torch.where(drawn, alpha * torch.exp(log_t_after - log_t), torch.zeros_like(alpha))
