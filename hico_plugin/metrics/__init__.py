@@ -8,10 +8,10 @@ from hico_plugin.metrics.geometry import (
     normal_angular_error,
     surface_metrics,
 )
-from hico_plugin.metrics.image import psnr, ssim
+from hico_plugin.metrics.image import image_metrics, psnr, ssim
 from hico_plugin.metrics.lpips_net import LPIPS, load_lpips, lpips
 
 __all__ = [
-    "LPIPS", "NormalError", "SurfaceMetrics", "depth_abs_rel", "gt_spacing_threshold", "load_lpips", "lpips",
-    "normal_angular_error", "psnr", "ssim", "surface_metrics",
+    "LPIPS", "NormalError", "SurfaceMetrics", "depth_abs_rel", "gt_spacing_threshold", "image_metrics",
+    "load_lpips", "lpips", "normal_angular_error", "psnr", "ssim", "surface_metrics",
 ]

@@ -7,6 +7,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.errors import HicoError
+from hico_plugin.metrics.lpips_net import lpips
 
 
 def _as_batch(pred: Tensor, target: Tensor, name: str) -> tuple[Tensor, Tensor, bool]:
@@ -45,3 +46,16 @@ def ssim(pred: Tensor, target: Tensor) -> Tensor:
         win_size=11, win_sigma=1.5,
     )
     return values if batched else values[0]
+
+
+def image_metrics(pred: Tensor, target: Tensor, lpips_nets: tuple[str, ...] = ("vgg",)) -> dict[str, float | None]:
+    """PSNR, SSIM and LPIPS of one image pair as floats: {"psnr", "ssim", "lpips_<net>"}.
+
+    pred, target: [H, W, 3] in [0, 1]. LPIPS defaults to VGG (the CityGS-X / Octree-GS protocol); an
+    LPIPS whose weights cannot be loaded is None, never 0. Dataset scores are means of these values.
+    """
+    scores: dict[str, float | None] = {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target))}
+    for net in lpips_nets:
+        distance = lpips(pred, target, net)
+        scores[f"lpips_{net}"] = None if distance is None else float(distance)
+    return scores

@@ -132,7 +132,9 @@ class LPIPS(nn.Module):
     """LPIPS v0.1 distance: backbone features, unit-normalised per channel, squared difference,
     learned 1x1 channel weights, spatial mean, summed over the five taps.
 
-    Call with pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]; returns [] or [B].
+    Call with pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]; returns [] or [B]. ``to_signed``
+    maps [0, 1] to [-1, 1] first, as the LPIPS project specifies; False feeds [0, 1] straight in, as
+    the 3DGS / CityGS-X metric scripts do (their published LPIPS numbers are on that scale).
     """
 
     def __init__(self, net: str = "alex"):
@@ -181,13 +183,15 @@ class LPIPS(nn.Module):
                 conv_index += 1
         return taps
 
-    def forward(self, pred: Tensor, target: Tensor) -> Tensor:
+    def forward(self, pred: Tensor, target: Tensor, to_signed: bool = True) -> Tensor:
         if pred.shape != target.shape or pred.dim() not in (3, 4) or pred.shape[-1] != 3:
             raise HicoError(f"lpips: expected two [H, W, 3] or [B, H, W, 3] images, got {tuple(pred.shape)} and {tuple(target.shape)}")
         batched = pred.dim() == 4
         images = torch.cat([pred, target]) if batched else torch.stack([pred, target])
         images = images.permute(0, 3, 1, 2).to(self.shift.dtype)
-        images = ((images * 2.0 - 1.0) - self.shift) / self.scale  # [0,1] -> [-1,1] -> ScalingLayer
+        if to_signed:
+            images = images * 2.0 - 1.0  # the LPIPS project's input range is [-1, 1]
+        images = (images - self.shift) / self.scale  # ScalingLayer
         distance = 0.0
         for feature, head in zip(self._features(images), self.heads):
             unit = feature / (feature.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
@@ -216,13 +220,13 @@ def load_lpips(net: str = "alex", device: torch.device | str = "cpu") -> LPIPS |
     return None if model is None else model.to(device)
 
 
-def lpips(pred: Tensor, target: Tensor, net: str = "alex") -> Tensor | None:
+def lpips(pred: Tensor, target: Tensor, net: str = "alex", to_signed: bool = True) -> Tensor | None:
     """LPIPS distance (lower is better) or None when the weights are unavailable.
 
-    pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]. Returns [] or [B].
+    pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]. Returns [] or [B]. ``to_signed``: see LPIPS.
     """
     model = load_lpips(net, pred.device)
     if model is None:
         return None
     with torch.no_grad():
-        return model(pred, target)
+        return model(pred, target, to_signed)
