@@ -90,6 +90,8 @@ class TrainerConfig(InstantiateConfig):
     """Start afresh in an output_dir that already holds checkpoints (deletes them)."""
     max_nonfinite_steps: int = 10
     """Stop the run after this many non-finite losses in a row (each such step is skipped)."""
+    distributed_timeout_minutes: float = 30.0
+    """Under torchrun: how long a worker waits for the others at a collective before failing."""
 
     def wants_viewer(self) -> bool:
         return "viewer" in self.vis or (self.vis == "auto" and sys.stdout.isatty())
@@ -165,7 +167,7 @@ class Trainer:
         _validate(config)
         self.config = config
         self.device = dist_utils.local_device(resolve_device(config.device))
-        self.distributed = dist_utils.init_distributed(self.device)
+        self.distributed = dist_utils.init_distributed(self.device, config.distributed_timeout_minutes)
         self.rank = dist_utils.get_rank()
         self.world_size = dist_utils.get_world_size()
         seed_everything(config.seed)
@@ -183,6 +185,7 @@ class Trainer:
         self.step = 0
         self.train_seconds = 0.0
         self.last_checkpoint: Path | None = None
+        self._saved_step = -1
         self.latest_metrics: dict[str, float] = {}
         self.last_eval: dict[str, Any] | None = None
         self.lock = threading.RLock()
@@ -280,10 +283,12 @@ class Trainer:
         elif rng_states:  # resumed with another number of workers: the best we can do
             set_rng_state(rng_states[0])
         self.last_checkpoint = Path(path)
+        self._saved_step = self.step
 
     def save_checkpoint(self) -> Path | None:
         """Write the checkpoint of the current step (a collective: every rank must call it)."""
         states = dist_utils.gather_objects(rng_state())
+        self._saved_step = self.step  # on every rank, so all agree on whether a final save is due
         if not self.is_main:
             return None
         payload = {
@@ -413,15 +418,11 @@ class Trainer:
                 self._evaluate_and_report(step, write_json=False)
         eval_results = None
         if not interrupted:
-            if self.last_checkpoint is None or self._checkpoint_step(self.last_checkpoint) != self.step:
+            if self._saved_step != self.step:
                 self.save_checkpoint()
             eval_results = self._evaluate_and_report(max(self.step - 1, 0), write_json=True)
         self._run_callbacks("on_train_end", max(self.step - 1, 0))
         return TrainResult(self.step, interrupted, self.last_checkpoint if self.is_main else None, eval_results)
-
-    @staticmethod
-    def _checkpoint_step(path: Path) -> int:
-        return int(path.stem.split("-")[1])
 
     def _evaluate_and_report(self, step: int, write_json: bool) -> dict[str, Any] | None:
         """Evaluate on rank 0 (others go on to the next collective and wait there)."""
