@@ -1,0 +1,220 @@
+"""The viewer's server end to end, with a websocket client that speaks viser's protocol like a browser."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from typing import Any
+
+import msgspec
+import numpy as np
+import pytest
+import torch
+import viser
+import websockets.sync.client
+
+from hico_plugin.viewer import RenderOptions, TrainingCameras, Viewer, ViewerConfig, viser_to_camera
+from hico_plugin.viewer.demo import orbit_cameras
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class FakeState:
+    """A ViewerState with fixed cameras / anchors; ``step`` advanced by the test's fake trainer."""
+
+    def __init__(self, num_cameras: int = 12, training: bool = False):
+        self.render_lock = threading.Lock()
+        self.is_training = training
+        self.is_paused = False
+        self.step = 0
+        self.checkpoints = 0
+        self.cameras = orbit_cameras(num_cameras)
+
+    def set_paused(self, paused: bool) -> None:
+        self.is_paused = paused
+
+    def request_checkpoint(self) -> None:
+        self.checkpoints += 1
+
+    def training_cameras(self, max_cameras: int, thumbnail_size: int) -> TrainingCameras:
+        count = min(max_cameras, len(self.cameras))
+        thumbnails = [np.full((thumbnail_size * 3 // 4, thumbnail_size, 3), 40 * i % 255, np.uint8) for i in range(count)]
+        subset = orbit_cameras(count)
+        return TrainingCameras(subset, thumbnails, list(range(count)))
+
+    def anchors(self):
+        positions = torch.randn(500, 3, generator=torch.Generator().manual_seed(0))
+        return positions, torch.arange(500) % 3
+
+    def stats(self) -> dict[str, Any]:
+        return {"step": self.step, "loss": 0.5}
+
+    def history(self) -> dict[str, np.ndarray]:
+        steps = np.arange(self.step, dtype=np.float64)
+        return {"step": steps, "loss": 1.0 / (steps + 1), "psnr": 20 + steps}
+
+
+class RecordingRender:
+    """render_fn that records its calls and paints a gradient (optionally failing or slow)."""
+
+    def __init__(self, fail_first: int = 0, seconds: float = 0.0, state: FakeState | None = None):
+        self.calls: list[tuple[Any, RenderOptions]] = []
+        self.steps_at_render: list[int] = []
+        self.fail_first = fail_first
+        self.seconds = seconds
+        self.state = state
+
+    def __call__(self, camera, options):
+        self.calls.append((camera, options))
+        if self.state is not None:
+            self.steps_at_render.append(self.state.step)
+        if len(self.calls) <= self.fail_first:
+            raise RuntimeError("model exploded")
+        time.sleep(self.seconds)
+        ramp = np.linspace(0, 255, camera.width, dtype=np.float32).astype(np.uint8)
+        return np.repeat(np.repeat(ramp[None, :, None], camera.height, 0), 3, 2)
+
+
+class ProtocolClient:
+    """A websocket client that announces a camera like viser's web client (and drains what it gets)."""
+
+    def __init__(self, port: int):
+        self.socket = websockets.sync.client.connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None
+        )
+        self.received = 0
+        self._reader = threading.Thread(target=self._drain, daemon=True)
+        self._reader.start()
+
+    def _drain(self) -> None:
+        try:
+            while True:
+                self.socket.recv()
+                self.received += 1
+        except Exception:  # closed
+            return
+
+    def send_camera(self, wxyz, position, fov=1.0, width=400, height=300) -> None:
+        message = {
+            "type": "ViewerCameraMessage", "wxyz": tuple(map(float, wxyz)), "position": tuple(map(float, position)),
+            "fov": fov, "near": 0.01, "far": 100.0, "image_height": height, "image_width": width,
+            "look_at": (0.0, 0.0, 0.0), "up_direction": (0.0, 0.0, 1.0),
+        }
+        self.socket.send(msgspec.msgpack.encode(message))
+
+    def close(self) -> None:
+        self.socket.close()
+
+
+def _wait_for(condition, timeout: float = 30.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+_LOOK_MINUS_Z = (0.0, 1.0, 0.0, 0.0)  # 180 deg about x: camera z forward = world -z
+
+
+def test_viewer_renders_a_browser_camera_and_frees_its_port(capsys):
+    port = _free_port()
+    state = FakeState(num_cameras=12)
+    render = RecordingRender()
+    viewer = Viewer(ViewerConfig(port=port, max_cameras=5, max_resolution=256, settle_seconds=0.05), render, state)
+    client = None
+    try:
+        assert viewer.port == port and viewer.url == f"http://localhost:{port}"
+        printed = capsys.readouterr().out
+        assert f"http://localhost:{port}" in printed and f"ssh -L {port}:localhost:{port}" in printed
+        assert len(viewer._frustums) == 5 and viewer._num_levels == 3
+        client = ProtocolClient(port)
+        client.send_camera(_LOOK_MINUS_Z, (0.5, 0.0, 4.0), fov=0.8, width=400, height=200)
+        assert _wait_for(lambda: viewer.render_count >= 1 and render.calls[-1][0].width == 256)
+        assert viewer.clients_seen == 1 and viewer.last_error is None
+        camera, options = render.calls[-1]
+        expected = viser_to_camera(np.array(_LOOK_MINUS_Z), np.array([0.5, 0.0, 4.0]), 0.8, 256, 128)
+        assert (camera.width, camera.height) == (256, 128)
+        assert torch.allclose(camera.viewmat, expected.viewmat, atol=1e-5) and torch.allclose(camera.K, expected.K)
+        assert options == viewer.render_options() and options.output == "rgb" and options.clca_enabled
+        assert viewer.last_image.shape == (128, 256, 3)
+        # A GUI change re-renders with the new options.
+        viewer._output.value = "depth"
+        assert _wait_for(lambda: render.calls[-1][1].output == "depth")
+    finally:
+        if client is not None:
+            client.close()
+        viewer.stop()
+    with socket.socket() as probe, pytest.raises(ConnectionRefusedError):
+        probe.connect(("127.0.0.1", port))
+    again = Viewer(ViewerConfig(port=port), RecordingRender(), FakeState())  # the port can be bound again
+    try:
+        assert again.port == port
+    finally:
+        again.stop()
+
+
+def test_busy_port_moves_to_the_next_one_and_prints_the_real_url(capsys):
+    with socket.socket() as blocker:
+        blocker.bind(("127.0.0.1", 0))
+        blocker.listen()
+        busy = blocker.getsockname()[1]
+        viewer = Viewer(ViewerConfig(port=busy), RecordingRender(), FakeState())
+        try:
+            assert viewer.port != busy
+            assert f"http://localhost:{viewer.port}" in capsys.readouterr().out
+        finally:
+            viewer.stop()
+
+
+def test_render_errors_are_reported_and_rendering_goes_on():
+    state = FakeState()
+    render = RecordingRender(fail_first=1)
+    viewer = Viewer(ViewerConfig(port=_free_port(), settle_seconds=0.05, max_resolution=128), render, state)
+    client = ProtocolClient(viewer.port)
+    try:
+        client.send_camera(_LOOK_MINUS_Z, (0.0, 0.0, 4.0))
+        assert _wait_for(lambda: viewer.last_error is not None)
+        assert "model exploded" in viewer.last_error and "model exploded" in viewer._render_status.content
+        client.send_camera(_LOOK_MINUS_Z, (0.0, 0.2, 4.0))
+        assert _wait_for(lambda: viewer.render_count >= 1 and viewer.last_error is None)
+        assert viewer._thread.is_alive()
+    finally:
+        client.close()
+        viewer.stop()
+
+
+def test_training_waits_for_at_most_one_render_per_step():
+    state = FakeState(training=True)
+    render = RecordingRender(seconds=0.02, state=state)
+    viewer = Viewer(ViewerConfig(port=_free_port(), settle_seconds=10.0, max_resolution=64, min_resolution=32), render, state)
+    stop = threading.Event()
+
+    def train() -> None:
+        while not stop.is_set():
+            with state.render_lock:
+                time.sleep(0.01)  # the training step
+            state.step += 1
+
+    trainer = threading.Thread(target=train)
+    client = ProtocolClient(viewer.port)
+    try:
+        trainer.start()
+        for i in range(60):  # a moving camera asks for a render all the time
+            client.send_camera(_LOOK_MINUS_Z, (0.0, 0.01 * i, 4.0))
+            time.sleep(0.02)
+        assert _wait_for(lambda: len(render.steps_at_render) >= 5)
+    finally:
+        stop.set()
+        trainer.join()
+        client.close()
+        viewer.stop()
+    steps = render.steps_at_render
+    assert all(later > earlier for earlier, later in zip(steps, steps[1:])), steps  # never two renders per step
+    assert state.step > len(steps)
