@@ -56,6 +56,9 @@ def test_ssim_drops_with_noise_and_is_differentiable():
 def test_image_metrics_reject_mismatched_shapes():
     with pytest.raises(HicoError, match="differ in shape"):
         psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))
+    with pytest.raises(HicoError, match="floating-point"):
+        ssim(torch.zeros(4, 4, 3), torch.zeros(4, 4, 3, dtype=torch.uint8))
+    assert ssim(torch.zeros(12, 12, 3), torch.zeros(12, 12, 3, dtype=torch.float64)).item() == pytest.approx(1.0)
 
 
 def _read_rgb(name: str) -> torch.Tensor:

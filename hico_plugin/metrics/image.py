@@ -16,6 +16,9 @@ def _as_batch(pred: Tensor, target: Tensor, name: str) -> tuple[Tensor, Tensor, 
         raise HicoError(f"{name}: prediction {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
     if pred.dim() not in (3, 4) or pred.shape[-3] == 0 or pred.shape[-2] == 0:
         raise HicoError(f"{name}: expected non-empty images [H, W, C] or [B, H, W, C], got {tuple(pred.shape)}")
+    if not (pred.is_floating_point() and target.is_floating_point()):
+        raise HicoError(f"{name}: expected floating-point images in [0, 1], got {pred.dtype} and {target.dtype}")
+    target = target.to(pred.dtype)  # pytorch-msssim refuses mixed dtypes
     batched = pred.dim() == 4
     return (pred, target, True) if batched else (pred[None], target[None], False)
 
