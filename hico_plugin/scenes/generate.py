@@ -1,0 +1,260 @@
+"""Generate a built-in scene as a COLMAP dataset with exact ground truth, cached on disk.
+
+Layout written (read by hico_plugin.data)::
+
+    DIR/images/<name>.png
+    DIR/sparse/0/{cameras,images,points3D}.bin
+    DIR/ground_truth/depth/<stem>.npy    float32 [H, W] camera z, 0 = no surface
+    DIR/ground_truth/normal/<stem>.npy   float32 [H, W, 3] unit camera-frame normals facing the camera
+    DIR/ground_truth/surface_points.npy  float32 [M, 3] dense visible-surface samples, world frame
+    DIR/scene.json                       name, parameters, declared + enabled effects, timings
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pycolmap
+
+from hico_plugin.errors import HicoError
+from hico_plugin.scenes import effects as fx
+from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
+from hico_plugin.scenes.render import render_view
+from hico_plugin.scenes.sparse import SparsePoints, feature_points
+
+GENERATOR_VERSION = 1  # bump when output for the same parameters changes, to invalidate caches
+CACHE_ENV = "HICO_CACHE_DIR"
+
+
+def cache_root() -> Path:
+    """Where generated scenes are cached: $HICO_CACHE_DIR or ~/.cache/hico_plugin/scenes."""
+    env = os.environ.get(CACHE_ENV)
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "hico_plugin" / "scenes"
+
+
+def scene_config(name: str, **overrides: Any) -> SceneConfig:
+    """The config of scene ``name`` with field overrides; ``effects`` may be a dict of switches."""
+    config = SCENES.get(name)()
+    valid = {f.name for f in dataclasses.fields(config)}
+    unknown = sorted(set(overrides) - valid)
+    if unknown:
+        raise HicoError(f"scene '{name}' has no parameter {unknown[0]!r}; expected one of {', '.join(sorted(valid))}")
+    effects = overrides.pop("effects", None)
+    if isinstance(effects, dict):
+        declared = config.effects.declared()
+        bad = sorted(set(effects) - set(declared))
+        if bad:
+            raise HicoError(
+                f"scene '{name}' does not declare effect {bad[0]!r}; declared: {', '.join(declared) or '(none)'}"
+            )
+        effects = dataclasses.replace(config.effects, **effects)
+    if effects is not None:
+        overrides["effects"] = effects
+    config = dataclasses.replace(config, **overrides)
+    validate_config(name, config)
+    return config
+
+
+def validate_config(name: str, config: SceneConfig) -> None:
+    for field, minimum in (("num_views", 2), ("width", 8), ("height", 8), ("sparse_points", 1)):
+        if getattr(config, field) < minimum:
+            raise HicoError(f"scene '{name}': {field} must be >= {minimum}, got {getattr(config, field)}")
+    if not 1.0 <= config.fov_x_deg <= 170.0:
+        raise HicoError(f"scene '{name}': fov_x_deg must be in [1, 170], got {config.fov_x_deg}")
+    if config.surface_spacing <= 0:
+        raise HicoError(f"scene '{name}': surface_spacing must be > 0, got {config.surface_spacing}")
+
+
+def scene_key(name: str, config: SceneConfig) -> str:
+    """Cache key: hash of the scene name, every parameter and the generator version."""
+    blob = json.dumps(
+        {"scene": name, "parameters": dataclasses.asdict(config), "version": GENERATOR_VERSION}, sort_keys=True
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def generate_scene(name: str, out_dir: str | Path | None = None, **overrides: Any) -> Path:
+    """Generate scene ``name`` (with parameter ``overrides``) and return its dataset directory.
+
+    With ``out_dir`` None the dataset lives in the cache (``cache_root()/<name>-<key>``) and is reused
+    when already there. Output is written to a temporary directory and renamed into place, so an
+    interrupted run never leaves a partial dataset.
+    """
+    config = scene_config(name, **overrides)
+    if out_dir is None:
+        final = cache_root() / f"{name}-{scene_key(name, config)}"
+        if (final / "scene.json").is_file():
+            return final
+    else:
+        final = Path(out_dir).expanduser().resolve()
+        if final.exists() and (not final.is_dir() or (any(final.iterdir()) and not (final / "scene.json").is_file())):
+            raise HicoError(f"--out {final}: exists and is not a generated scene; expected an empty or new directory")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-", dir=final.parent))
+    try:
+        write_scene(config.setup(name), tmp, key=scene_key(name, config))
+        _move_into_place(tmp, final, replace=out_dir is not None)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return final
+
+
+def _move_into_place(tmp: Path, final: Path, replace: bool) -> None:
+    if not final.exists():
+        try:
+            os.rename(tmp, final)
+            return
+        except OSError:
+            if not (final / "scene.json").is_file():  # lost a race to a half-made dir? not possible
+                raise
+    if not replace:  # another process cached the same scene first: keep theirs
+        return
+    if not any(final.iterdir()):
+        final.rmdir()
+        os.rename(tmp, final)
+        return
+    old = final.with_name(f".{final.name}.old-{os.getpid()}")
+    os.rename(final, old)
+    os.rename(tmp, final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def image_name(index: int) -> str:
+    return f"view_{index:04d}.png"
+
+
+def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
+    """Render every view of ``scene`` and write the dataset into ``out``; returns the scene.json dict."""
+    config = scene.config
+    enabled = set(scene.enabled_effects)
+    t_start = time.perf_counter()
+    for sub in ("images", "sparse/0", "ground_truth/depth", "ground_truth/normal"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    num_views, H, W = len(scene.viewmats), scene.height, scene.width
+    gains = fx.exposure_gains(num_views, config.seed) if "exposure" in enabled else None
+    noise_rng = np.random.default_rng([config.seed, 6]) if "sensor_noise" in enabled else None
+    images = np.zeros((num_views, H, W, 3), np.uint8)
+    depths = np.zeros((num_views, H, W), np.float32)
+    surface_keys, surface_points = [], []
+    for i, viewmat in enumerate(scene.viewmats):
+        view = render_view(scene.caster, viewmat, scene.K, W, H, scene.sun, config.ambient, config.shadows)
+        rgb = view.rgb
+        if "sky" in enabled:
+            rgb = fx.apply_sky(rgb, view.hit, view.dirs_world)
+        if gains is not None:
+            rgb = fx.apply_exposure(rgb, gains[i])
+        if noise_rng is not None:
+            rgb = fx.apply_sensor_noise(rgb, noise_rng)
+        images[i] = np.round(np.clip(rgb, 0.0, 1.0) * 255.0)
+        depths[i] = view.depth
+        stem = Path(image_name(i)).stem
+        if not cv2.imwrite(str(out / "images" / image_name(i)), cv2.cvtColor(images[i], cv2.COLOR_RGB2BGR)):
+            raise HicoError(f"{out / 'images' / image_name(i)}: could not write image")
+        np.save(out / "ground_truth" / "depth" / f"{stem}.npy", view.depth.astype(np.float32))
+        np.save(out / "ground_truth" / "normal" / f"{stem}.npy", view.normal.astype(np.float32))
+        # dense surface samples: every other pixel, thinned to one point per surface_spacing voxel
+        points = view.points[::2, ::2][view.hit[::2, ::2]]
+        keys = _voxel_keys(points, config.surface_spacing)
+        keys, first = np.unique(keys, return_index=True)
+        surface_keys.append(keys)
+        surface_points.append(points[first])
+    t_render = time.perf_counter() - t_start
+
+    keys = np.concatenate(surface_keys)
+    _, first = np.unique(keys, return_index=True)
+    surface = np.concatenate(surface_points)[first].astype(np.float32)
+    np.save(out / "ground_truth" / "surface_points.npy", surface)
+
+    t_sparse = time.perf_counter()
+    sparse = feature_points(images, depths, scene.viewmats, scene.K, config.sparse_points, config.sparse_noise, config.seed)
+    reconstruction = build_reconstruction(scene, sparse)
+    reconstruction.write_binary(str(out / "sparse" / "0"))
+    t_sparse = time.perf_counter() - t_sparse
+
+    hit_depths = depths[depths > 0]
+    meta = {
+        "scene": scene.name,
+        "key": key,
+        "generator_version": GENERATOR_VERSION,
+        "parameters": dataclasses.asdict(config),
+        "declared_effects": config.effects.declared(),
+        "enabled_effects": sorted(enabled),
+        "num_views": num_views,
+        "width": W,
+        "height": H,
+        "camera": {"model": "PINHOLE", "params": [scene.K[0, 0], scene.K[1, 1], scene.K[0, 2], scene.K[1, 2]]},
+        "sun_direction": scene.sun.tolist(),
+        "num_primitives": len(scene.primitives),
+        "num_points3D": reconstruction.num_points3D(),
+        "mean_track_length": reconstruction.compute_mean_track_length(),
+        "mean_reprojection_error_px": reconstruction.compute_mean_reprojection_error(),
+        "num_surface_points": len(surface),
+        "depth_range": [float(hit_depths.min()), float(hit_depths.max())] if hit_depths.size else [0.0, 0.0],
+        "camera_distance_range": _camera_distance_range(scene),
+        "exposure_gains": gains.tolist() if gains is not None else None,
+        "timings_s": {
+            "render": round(t_render, 3),
+            "sparse": round(t_sparse, 3),
+            "total": round(time.perf_counter() - t_start, 3),
+        },
+    }
+    tmp_json = out / "scene.json.tmp"
+    tmp_json.write_text(json.dumps(meta, indent=2))
+    os.replace(tmp_json, out / "scene.json")
+    return meta
+
+
+def _voxel_keys(points: np.ndarray, spacing: float) -> np.ndarray:
+    """One int64 per voxel of side ``spacing`` (21 bits per axis, wraps only beyond ~1e6 voxels)."""
+    cells = np.floor(points / spacing).astype(np.int64) & ((1 << 21) - 1)
+    return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+
+
+def _camera_distance_range(scene: Scene) -> list[float]:
+    centers = -np.einsum("cji,cj->ci", scene.viewmats[:, :3, :3], scene.viewmats[:, :3, 3])
+    distance = np.linalg.norm(centers, axis=1)
+    return [float(distance.min()), float(distance.max())]
+
+
+def build_reconstruction(scene: Scene, sparse: SparsePoints) -> pycolmap.Reconstruction:
+    """A pycolmap model: one PINHOLE camera, one posed image per view, points with tracks."""
+    K = scene.K
+    reconstruction = pycolmap.Reconstruction()
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=scene.width, height=scene.height,
+        params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=1,
+    )
+    reconstruction.add_camera_with_trivial_rig(camera)
+    # observations sorted by image: their rank within an image is their point2D index
+    obs_image = np.concatenate(sparse.track_images)
+    obs_point = np.repeat(np.arange(len(sparse.track_images)), [len(t) for t in sparse.track_images])
+    obs_pixel = np.concatenate(sparse.track_pixels)
+    order = np.argsort(obs_image, kind="stable")
+    counts = np.bincount(obs_image, minlength=len(scene.viewmats))
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    point2d_index = np.empty(len(order), np.int64)
+    point2d_index[order] = np.arange(len(order)) - np.repeat(starts, counts)
+    for i, viewmat in enumerate(scene.viewmats):  # one pycolmap Image per view
+        keypoints = obs_pixel[order[starts[i]: starts[i] + counts[i]]].astype(np.float64)
+        image = pycolmap.Image(name=image_name(i), keypoints=keypoints.reshape(-1, 2), camera_id=1, image_id=i + 1)
+        reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(viewmat[:3, :4]))
+    track_bounds = np.concatenate([[0], np.cumsum([len(t) for t in sparse.track_images])])
+    for p in range(len(sparse.xyz)):  # pycolmap takes points one at a time
+        lo, hi = track_bounds[p], track_bounds[p + 1]
+        track = pycolmap.Track(
+            [pycolmap.TrackElement(int(obs_image[k]) + 1, int(point2d_index[k])) for k in range(lo, hi)]
+        )
+        reconstruction.add_point3D(sparse.xyz[p], track, sparse.rgb[p])
+    reconstruction.update_point_3d_errors()
+    return reconstruction
