@@ -196,3 +196,31 @@ def test_loss_set_unions_outputs_and_terms():
     terms = losses(RenderOutputs(**images), images["rgb"], step=1)
     assert set(terms) == {"rgb_l1", "rgb_dssim", "dngc_nc", "dngc_ns", "dngc_ds"}
     assert all(abs(value.item()) < 1e-5 for value in terms.values())
+
+
+def _disc_plane(disc_tilt: float):
+    """Flat discs with centres on the plane z = 3 + 0.3 x (camera = world frame), each disc's normal
+    tilted by ``disc_tilt`` about y from the camera axis; disc_tilt = atan(0.3) lies them in the plane."""
+    grid = torch.linspace(-1.2, 1.2, 25)
+    x, y = torch.meshgrid(grid, grid, indexing="ij")
+    means = torch.stack([x.ravel(), y.ravel(), 3 + 0.3 * x.ravel()], -1)
+    # Rotation by -disc_tilt about y takes the disc axis z to (-sin, 0, cos) (flipped to face the camera).
+    half = -disc_tilt / 2
+    quats = torch.tensor([math.cos(half), 0.0, math.sin(half), 0.0]).expand(len(means), 4).contiguous()
+    scales = torch.tensor([0.08, 0.08, 1e-4]).expand(len(means), 3).contiguous()
+    return means, quats, scales
+
+
+@pytest.mark.parametrize("disc_tilt, expect_consistent", [(math.atan(0.3), True), (-0.5, False)])
+def test_dngc_on_rasterized_plane(disc_tilt, expect_consistent):
+    """The rasterizer's n_r and n_d conventions agree with the loss: discs lying in their plane give
+    L_nc ~ 0, discs tilted against it do not."""
+    from hico_plugin.rasterizer import rasterize
+
+    means, quats, scales = _disc_plane(disc_tilt)
+    K_px = torch.tensor([[30.0, 0.0, 16.0], [0.0, 30.0, 16.0], [0.0, 0.0, 1.0]])
+    out = rasterize(means, quats, scales, torch.full((len(means),), 0.9), torch.full((len(means), 3), 0.5),
+                    torch.eye(4), K_px, 32, 32, outputs=("rgb", "alpha", "normal", "distance", "depth_normal"),
+                    use_compile=False)
+    nc = dngc_losses(out.rgb, out.alpha, out.normal, out.depth_normal, out.distance)["nc"].item()
+    assert (nc < 1e-3) if expect_consistent else (nc > 0.3)
