@@ -16,11 +16,11 @@ from test_engine_toy_model import ToyDataConfig, ToyModelConfig
 MAX_STEPS = 16  # densifies at steps 4, 9 and 14: parameter shapes change 3 times
 
 
-def _config(output_dir: Path, batch_size: int, resume: bool = False) -> TrainerConfig:
+def _config(output_dir: Path, batch_size: int) -> TrainerConfig:
     return TrainerConfig(
         output_dir=output_dir, data=ToyDataConfig(), model=ToyModelConfig(densify_until=MAX_STEPS),
         max_steps=MAX_STEPS, batch_size=batch_size, seed=5, device="cpu", save_every=8, eval_every=8,
-        log_every=1, progress="none", vis="none", resume=resume, distributed_timeout_minutes=1.0,
+        log_every=1, progress="none", vis="none", distributed_timeout_minutes=1.0,
     )
 
 

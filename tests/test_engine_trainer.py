@@ -145,7 +145,15 @@ def test_nonfinite_losses_skip_then_stop_without_touching_the_last_checkpoint(tm
 
 def test_request_checkpoint_pause_and_lock(tmp_path):
     trainer = toy_config(tmp_path, max_steps=6, save_every=0, keep_checkpoints=0).setup()
-    seen = []
+    seen, steps_while_paused = [], []
+
+    def checkpoint_while_paused():
+        steps_while_paused.append(trainer.step)
+        trainer.request_checkpoint()
+
+    def resume():
+        steps_while_paused.append(trainer.step)
+        trainer.resume_training()
 
     class Controls(TrainerCallback):
         def on_step_end(self, step, metrics):
@@ -154,13 +162,15 @@ def test_request_checkpoint_pause_and_lock(tmp_path):
                 trainer.request_checkpoint()
             if step == 2:
                 trainer.pause()
-                threading.Timer(0.2, trainer.resume_training).start()
+                threading.Timer(0.1, checkpoint_while_paused).start()
+                threading.Timer(0.4, resume).start()
 
     trainer.add_callback(Controls())
     trainer.train()
     assert seen == list(range(6))
+    assert steps_while_paused == [3, 3]
     names = [p.name for p in list_checkpoints(tmp_path / "run" / "checkpoints")]
-    assert names == ["step-000000002.ckpt", "step-000000006.ckpt"]
+    assert names == ["step-000000002.ckpt", "step-000000003.ckpt", "step-000000006.ckpt"]
     assert trainer.lock.acquire(timeout=1)
     trainer.lock.release()
 

@@ -322,13 +322,21 @@ class Trainer:
         means = (vector[:-1] / self.world_size).tolist()
         return dict(zip(["loss", *metric_names], means)), bool(vector[-1] == 0)
 
-    def _control_flags(self) -> tuple[bool, bool]:
-        """(stop, checkpoint) requested on any rank; identical on every rank."""
+    def _control_flags(self) -> tuple[bool, bool, bool]:
+        """(stop, checkpoint, pause) requested on any rank, identical on every rank.
+
+        Reading a checkpoint request consumes it. Pausing is agreed too, so under torchrun the other
+        workers idle with rank 0 instead of timing out at the next collective.
+        """
+        checkpoint = self._checkpoint_requested.is_set()
+        if checkpoint:
+            self._checkpoint_requested.clear()
         flags = torch.tensor(
-            [float(self._stop_requested.is_set()), float(self._checkpoint_requested.is_set())], device=self.device
+            [float(self._stop_requested.is_set()), float(checkpoint), float(self._paused.is_set())],
+            device=self.device,
         )
-        stop, checkpoint = (dist_utils.all_reduce_sum_(flags) > 0).tolist()
-        return stop, checkpoint
+        stop, checkpoint, paused = (dist_utils.all_reduce_sum_(flags) > 0).tolist()
+        return stop, checkpoint, paused
 
     def _train_step(self, step: int) -> tuple[dict[str, float], bool]:
         positions = batch_positions(
@@ -378,10 +386,13 @@ class Trainer:
         self._run_callbacks("on_train_start", self, self.step)
         nonfinite_streak = 0
         it_per_s = None
-        interrupted = False
-        while self.step < config.max_steps:
-            while self._paused.is_set() and not self._stop_requested.is_set():
-                time.sleep(0.05)
+        stop, checkpoint, paused = self._control_flags()
+        if checkpoint:
+            self.save_checkpoint()
+        while self.step < config.max_steps and not stop:
+            if paused and self._wait_while_paused():
+                stop = True
+                break
             step = self.step
             start = time.perf_counter()
             with self.lock:
@@ -407,22 +418,29 @@ class Trainer:
                     f"training: {nonfinite_streak} non-finite losses in a row (last at step {step}); "
                     f"stopped without saving; the last good checkpoint is {self.last_checkpoint or 'none'}"
                 )
-            stop, checkpoint = self._control_flags()  # after the callbacks, which may ask for either
+            stop, checkpoint, paused = self._control_flags()  # after the callbacks, which may ask
             if checkpoint or stop or (config.save_every and self.step % config.save_every == 0):
-                self._checkpoint_requested.clear()
                 self.save_checkpoint()
-            if stop:
-                interrupted = True
-                break
-            if config.eval_every and self.step % config.eval_every == 0 and self.step < config.max_steps:
+            if not stop and config.eval_every and self.step % config.eval_every == 0 and self.step < config.max_steps:
                 self._evaluate_and_report(step, write_json=False)
-        eval_results = None
-        if not interrupted:
-            if self._saved_step != self.step:
-                self.save_checkpoint()
-            eval_results = self._evaluate_and_report(max(self.step - 1, 0), write_json=True)
+        interrupted = stop and self.step < config.max_steps
+        if self._saved_step != self.step:
+            self.save_checkpoint()
+        eval_results = None if interrupted else self._evaluate_and_report(max(self.step - 1, 0), write_json=True)
         self._run_callbacks("on_train_end", max(self.step - 1, 0))
         return TrainResult(self.step, interrupted, self.last_checkpoint if self.is_main else None, eval_results)
+
+    def _wait_while_paused(self) -> bool:
+        """Idle until resumed (all ranks together); checkpoints asked for meanwhile are written at
+        once. Returns True when a stop was requested."""
+        paused = stop = False
+        while True:
+            time.sleep(0.05)
+            stop, checkpoint, paused = self._control_flags()
+            if checkpoint:
+                self.save_checkpoint()
+            if stop or not paused:
+                return stop
 
     def _evaluate_and_report(self, step: int, write_json: bool) -> dict[str, Any] | None:
         """Evaluate on rank 0 (others go on to the next collective and wait there)."""
@@ -451,7 +469,9 @@ class Trainer:
         if not self.is_main:
             return
         for callback in self.callbacks:
-            getattr(callback, hook)(*args)
+            method = getattr(callback, hook, None)  # duck-typed callbacks may leave hooks out
+            if method is not None:
+                method(*args)
 
 
 def load_run(
