@@ -10,11 +10,9 @@ Public API::
     viser_to_camera(wxyz, position, fov_y, width, height) -> Camera; camera_to_viser(camera)
     next_resolution(last_render_seconds, target_seconds, current, minimum, maximum) -> int
 
-Wiring into training (rank 0)::
+Wiring into training (rank 0; the model implements ViewableModel)::
 
-    state = RunViewerState(model, dataset)
-    trainer.add_callback(state)
-    viewer = ViewerConfig().setup(render_fn=model_render_fn(model), state=state)
+    viewer = attach_viewer(trainer, ViewerConfig())   # RunViewerState as a trainer callback + Viewer
     trainer.train(); viewer.stop()
 """
 
@@ -29,7 +27,7 @@ from hico_plugin.viewer.state import (
     model_render_fn,
 )
 from hico_plugin.viewer.throttle import next_resolution, plan_render
-from hico_plugin.viewer.viewer import Viewer, ViewerConfig
+from hico_plugin.viewer.viewer import Viewer, ViewerConfig, attach_viewer
 from hico_plugin.viewer.visualize import (
     apply_colormap,
     level_colors,
@@ -52,6 +50,7 @@ __all__ = [
     "ViewerConfig",
     "ViewerState",
     "apply_colormap",
+    "attach_viewer",
     "camera_to_viser",
     "level_colors",
     "model_render_fn",

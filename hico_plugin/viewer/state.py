@@ -154,10 +154,15 @@ class RunViewerState:
         self._max_history = max_history
         self._step = int(self._stats.get("step", 0))
 
-    # ------------------------------------------------------------------ trainer callback hooks
-    def on_train_start(self, trainer: Any, step: int) -> None:
+    def attach(self, trainer: Any) -> None:
+        """Share ``trainer``'s lock and controls (before a render can run concurrently with a step)."""
         self._trainer = trainer
         self.render_lock = trainer.lock
+        self._step = int(getattr(trainer, "step", self._step))
+
+    # ------------------------------------------------------------------ trainer callback hooks
+    def on_train_start(self, trainer: Any, step: int) -> None:
+        self.attach(trainer)
         self._training = True
         self._step = step
 

@@ -23,7 +23,15 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer.conversions import camera_to_viser, render_size, viser_to_camera
 from hico_plugin.viewer.options import COLORMAP_NAMES, OUTPUT_NAMES, RenderOptions
-from hico_plugin.viewer.state import RenderFn, TrainingCameras, ViewerState, evenly_spaced
+from hico_plugin.viewer.state import (
+    RenderFn,
+    RunViewerState,
+    TrainingCameras,
+    ViewableModel,
+    ViewerState,
+    evenly_spaced,
+    model_render_fn,
+)
 from hico_plugin.viewer.stats_panel import format_stats_markdown, plot_series
 from hico_plugin.viewer.throttle import RenderKind, next_resolution, plan_render
 from hico_plugin.viewer.visualize import level_colors
@@ -465,6 +473,22 @@ class Viewer:
                 )
         else:
             self._plot.data = data
+
+
+def attach_viewer(trainer: Any, config: ViewerConfig) -> Viewer:
+    """Start a viewer on ``trainer``'s model and dataset and join the run as a callback (rank 0).
+
+    The model must implement ViewableModel. Stop it with ``viewer.stop()`` after ``trainer.train()``.
+    """
+    if not isinstance(trainer.model, ViewableModel):
+        raise HicoError(
+            f"vis: model {type(trainer.model).__name__} cannot be viewed "
+            "(it needs viewer_render(camera, options) and viewer_anchors()); use --vis none"
+        )
+    state = RunViewerState(trainer.model, trainer.dataset)
+    state.attach(trainer)
+    trainer.add_callback(state)
+    return Viewer(config, model_render_fn(trainer.model), state)
 
 
 def _check_image(image: Any, width: int, height: int) -> np.ndarray:
