@@ -1,1 +1,21 @@
-"""The anchor octree field: LOD selection, cross-level context aggregation (CLCA), Gaussian decoding."""
+"""The anchor octree field: LOD selection, cross-level context aggregation (CLCA), Gaussian decoding.
+
+    field = FieldConfig().setup(points=points, train_cameras=cameras, total_steps=30_000)
+    visible_ids = field.select(camera, step)
+    gaussians = field.decode(camera, visible_ids)      # NeuralGaussians
+
+See field.py for the training-side API (param_groups, default_lrs, accumulate_stats, densify).
+"""
+
+from hico_plugin.field.context import (
+    CONTEXT_AGGREGATORS, ContextAggregator, ContextConfig, context_triplet, dense_cell_ids)
+from hico_plugin.field.decoder import DecoderConfig, GaussianDecoder, NeuralGaussians
+from hico_plugin.field.densify import DensifyConfig
+from hico_plugin.field.field import ANCHOR_GROUPS, AnchorField, FieldConfig
+from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree
+
+__all__ = [
+    "ANCHOR_GROUPS", "AnchorField", "CONTEXT_AGGREGATORS", "ContextAggregator", "ContextConfig",
+    "DecoderConfig", "DensifyConfig", "FieldConfig", "GaussianDecoder", "NeuralGaussians",
+    "OctreeBuildConfig", "OctreeGrid", "build_octree", "context_triplet", "dense_cell_ids",
+]

@@ -1,0 +1,140 @@
+"""Neural Gaussian decoder (algorithm_spec.md §3): K Gaussians per visible anchor from shared MLPs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from hico_plugin.config import InstantiateConfig
+
+
+@dataclass
+class NeuralGaussians:
+    """The Gaussians decoded for one view (only those with opacity > 0), plus densification inputs.
+
+    means [M,3]; quats [M,4] (w,x,y,z, unit); scales [M,3] (linear); opacities [M] in (0,1];
+    colors [M,3] in (0,1); anchor_ids [M] long (index into the field's anchors);
+    child_ids [M] long (which of the anchor's K offsets).
+    visible_ids [V] long: the anchors decoded; raw_opacities [V,K]: tanh opacities of all K children
+    of each visible anchor (detached; the opacity statistic); keep_mask [V,K] bool: opacity > 0.
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    anchor_ids: Tensor
+    child_ids: Tensor
+    visible_ids: Tensor
+    raw_opacities: Tensor
+    keep_mask: Tensor
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+
+@dataclass
+class DecoderConfig(InstantiateConfig):
+    """Shared MLPs turning an anchor's (enhanced) feature and the view into K neural Gaussians."""
+
+    num_offsets: int = 5
+    """K, neural Gaussians per anchor (the paper's default 5; CityGS-X's command-line default is 10)."""
+    hidden_dim: int = 32
+    """Hidden width of the opacity / covariance / colour MLPs."""
+    add_distance: bool = False
+    """Append the camera distance to the MLP inputs (base default off; Octree-GS suggests on for
+    scenes spanning many scales)."""
+    add_level: bool = False
+    """Append the anchor's octree level to the MLP inputs."""
+    appearance_dim: int = 0
+    """Per-training-camera appearance embedding size fed to the colour MLP; 0 = off (CityGS-X's
+    default). Cameras without a training index (test / viewer, index -1 or out of range) use the mean
+    of the training embeddings, the neutral appearance."""
+    chunk_size: int = 65_536
+    """Anchors decoded per chunk, bounding the MLPs' intermediate memory on large scenes."""
+
+    def setup(self, feature_dim: int = 32, num_train_cameras: int = 0, **kwargs) -> "GaussianDecoder":
+        return GaussianDecoder(self, feature_dim, num_train_cameras)
+
+
+def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
+
+
+class GaussianDecoder(nn.Module):
+    """Opacity (tanh), covariance (7 per child) and colour (sigmoid) MLPs on [f_hat; view dir; ...]."""
+
+    def __init__(self, config: DecoderConfig, feature_dim: int, num_train_cameras: int):
+        super().__init__()
+        self.config = config
+        k, hidden = config.num_offsets, config.hidden_dim
+        in_dim = feature_dim + 3 + int(config.add_distance) + int(config.add_level)
+        self.mlp_opacity = _mlp(in_dim, hidden, k)
+        self.mlp_cov = _mlp(in_dim, hidden, 7 * k)
+        self.mlp_color = _mlp(in_dim + config.appearance_dim, hidden, 3 * k)
+        self.appearance = (nn.Embedding(max(1, num_train_cameras), config.appearance_dim)
+                           if config.appearance_dim > 0 else None)
+
+    def appearance_code(self, camera_index: int, like: Tensor) -> Tensor:
+        """[appearance_dim] embedding of a training camera, or the mean embedding for any other."""
+        table = self.appearance.weight
+        if 0 <= camera_index < table.shape[0]:
+            return table[camera_index]
+        return table.mean(0)
+
+    def forward(self, features: Tensor, positions: Tensor, offsets: Tensor, scalings: Tensor,
+                levels: Tensor, camera_center: Tensor, camera_index: int, anchor_ids: Tensor
+                ) -> NeuralGaussians:
+        """Decode visible anchors.
+
+        features [V,d] (f_hat); positions [V,3]; offsets [V,K,3]; scalings [V,6] (linear,
+        = exp of the log-scaling parameter); levels [V]; camera_center [3]; anchor_ids [V] long
+        (the anchors' ids in the field, carried into the output).
+        """
+        parts = []
+        size = max(1, self.config.chunk_size)
+        for start in range(0, features.shape[0], size):  # chunks of anchors, not a per-anchor loop
+            sl = slice(start, start + size)
+            parts.append(self._decode(features[sl], positions[sl], offsets[sl], scalings[sl],
+                                      levels[sl], camera_center, camera_index, anchor_ids[sl]))
+        if not parts:
+            parts.append(self._decode(features, positions, offsets, scalings, levels, camera_center,
+                                      camera_index, anchor_ids))
+        fields = {name: torch.cat([getattr(p, name) for p in parts]) for name in NeuralGaussians.__dataclass_fields__}
+        return NeuralGaussians(**fields)
+
+    def _decode(self, features, positions, offsets, scalings, levels, camera_center, camera_index,
+                anchor_ids) -> NeuralGaussians:
+        k = self.config.num_offsets
+        to_anchor = positions - camera_center
+        dist = to_anchor.norm(dim=-1, keepdim=True)
+        inputs = [features, to_anchor / dist.clamp_min(1e-12)]
+        if self.config.add_distance:
+            inputs.append(dist)
+        if self.config.add_level:
+            inputs.append(levels[:, None].to(features.dtype))
+        inputs = torch.cat(inputs, dim=1)
+
+        opacity = torch.tanh(self.mlp_opacity(inputs))  # [V,K]
+        keep = opacity > 0
+        anchor_rows, child_ids = keep.nonzero(as_tuple=True)
+
+        color_in = inputs
+        if self.appearance is not None:
+            code = self.appearance_code(camera_index, inputs)
+            color_in = torch.cat([inputs, code.expand(inputs.shape[0], -1)], dim=1)
+        # Only the kept children are needed downstream: evaluate the MLPs per anchor, then gather.
+        colors = torch.sigmoid(self.mlp_color(color_in)).view(-1, k, 3)[anchor_rows, child_ids]
+        cov = self.mlp_cov(inputs).view(-1, k, 7)[anchor_rows, child_ids]
+        anchor_scale = scalings[anchor_rows]
+        scales = anchor_scale[:, 3:6] * torch.sigmoid(cov[:, :3])
+        quats = F.normalize(cov[:, 3:7], dim=-1)
+        means = positions[anchor_rows] + offsets[anchor_rows, child_ids] * anchor_scale[:, :3]
+        return NeuralGaussians(
+            means=means, quats=quats, scales=scales, opacities=opacity[anchor_rows, child_ids],
+            colors=colors, anchor_ids=anchor_ids[anchor_rows], child_ids=child_ids,
+            visible_ids=anchor_ids, raw_opacities=opacity.detach(), keep_mask=keep)

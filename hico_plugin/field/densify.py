@@ -1,0 +1,136 @@
+"""Level-aware anchor growing and pruning (algorithm_spec.md §4), as pure tensor functions.
+
+The field (field.py) owns the statistics buffers and applies the results; these functions only decide
+which offsets spawn which new anchors and which anchors are pruned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.field.context import dense_cell_ids
+from hico_plugin.field.octree import OctreeGrid, visibility_fraction
+
+
+@dataclass
+class DensifyConfig(InstantiateConfig):
+    """Anchor growing / pruning schedule and thresholds. Step values are optimizer steps for a run of
+    ``FieldConfig.reference_steps`` steps and scale with the run's length."""
+
+    enabled: bool = True
+    """Grow and prune anchors during training."""
+    start_step: int = 500
+    """First step at which anchors are adjusted (CityGS-X: 500)."""
+    interval: int = 100
+    """Steps between adjustments (CityGS-X: 100)."""
+    stop_step: int = 25_000
+    """Last step of statistics and adjustments. CityGS-X keeps a fixed 50k-image horizon (so a 30k run
+    densifies to its end); Octree-GS stops at 25k of 40k; we stop at 25k of the 30k reference run so the
+    last anchors get trained."""
+    grad_threshold: float = 2e-4
+    """tau: mean NDC-space gradient norm above which an offset spawns an anchor (level 0)."""
+    success_threshold: float = 0.8
+    """An offset's gradient counts once it was seen in > interval x views/step x this x 0.5 views;
+    an anchor is judged for pruning once seen in > interval x views/step x this views."""
+    update_ratio: float = 0.2
+    """Level l's threshold is tau x u^l with u = b^update_ratio; g >= tau_l x u grows one level finer."""
+    extra_ratio: float = 0.25
+    """eps_i is raised when the anchor's mean gradient >= tau_l x extra_ratio."""
+    extra_up: float = 0.01
+    """Increment of the extra level eps_i."""
+    min_opacity: float = 0.005
+    """Prune anchors whose mean summed child opacity per view is below this."""
+    max_log_scale: float = 0.05
+    """On every prune, the anchors' log scale factors s[3:6] are clamped to at most this."""
+
+
+def offset_gradients(grad_accum: Tensor, denom: Tensor, min_observations: float) -> tuple[Tensor, Tensor]:
+    """Mean gradient per offset, zeroed where seen too rarely: [N,K] each -> (grads [N,K], eligible)."""
+    eligible = denom > min_observations
+    grads = torch.where(eligible, grad_accum / denom.clamp_min(1), torch.zeros_like(grad_accum))
+    return grads, eligible
+
+
+@dataclass
+class GrownAnchors:
+    """New anchors: positions [G,3] (on grid points), levels [G] long, features [G,d]."""
+
+    positions: Tensor
+    levels: Tensor
+    features: Tensor
+
+
+def level_thresholds(levels: Tensor, grid: OctreeGrid, config: DensifyConfig) -> Tensor:
+    """tau_l = tau x u^l per anchor: levels [N] -> [N], u = b^update_ratio."""
+    growth = float(grid.fork) ** config.update_ratio
+    return config.grad_threshold * growth ** levels.to(torch.float32)
+
+
+def grow_anchors(positions: Tensor, levels: Tensor, features: Tensor, offsets: Tensor, log_scaling: Tensor,
+                 grads: Tensor, grid: OctreeGrid, config: DensifyConfig, camera_centers: Tensor,
+                 visible_threshold: float, allow_next_level: bool) -> GrownAnchors:
+    """Anchors spawned by high-gradient offsets, all levels at once.
+
+    positions [N,3], levels [N], features [N,d], offsets [N,K,3], log_scaling [N,6], grads [N,K]
+    (from ``offset_gradients``), camera_centers [C,3] (for the weed-out of new anchors).
+    An offset of a level-l anchor with tau_l <= g < tau_l x u proposes its Gaussian centre's level-l
+    cell; with g >= tau_l x u (and next-level growth allowed, l < L-1) its level-(l+1) cell. Cells
+    already holding an anchor of that level are dropped, the rest de-duplicated and weeded out by
+    visibility. A new cell's feature is the channel-wise max over its same-level source anchors (zero
+    if only finer-level proposals hit it, as in the base method).
+    """
+    growth = float(grid.fork) ** config.update_ratio
+    tau = level_thresholds(levels, grid, config).to(grads)[:, None]
+    same_level = (grads >= tau) & (grads < tau * growth)
+    next_level = (grads >= tau * growth) & (levels < grid.num_levels - 1)[:, None] & allow_next_level
+    rows, children = (same_level | next_level).nonzero(as_tuple=True)
+    to_finer = next_level[rows, children]
+    target_levels = levels[rows] + to_finer.long()
+    centres = positions[rows] + offsets[rows, children] * torch.exp(log_scaling[rows, :3])
+    cand_keys = torch.cat([target_levels[:, None], grid.grid_index(centres, target_levels)], 1)
+    anchor_keys = torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
+
+    ids, num_cells = dense_cell_ids(torch.cat([anchor_keys, cand_keys]))
+    occupied = torch.zeros(num_cells, dtype=torch.bool, device=positions.device)
+    occupied[ids[: positions.shape[0]]] = True
+    cand_ids = ids[positions.shape[0]:]
+    free = ~occupied[cand_ids]
+    new_cells, slot = torch.unique(cand_ids[free], return_inverse=True)
+    num_new = new_cells.shape[0]
+    free_keys = cand_keys[free]
+    # Every candidate of a slot has the same key, so any one of them names the cell.
+    new_keys = free_keys.new_empty(num_new, 4).index_copy_(0, slot, free_keys)
+    same_sources = ~to_finer[free]
+    new_features = features.new_zeros(num_new, features.shape[1]).scatter_reduce(
+        0, slot[same_sources, None].expand(-1, features.shape[1]),
+        features[rows[free][same_sources]].detach(), "amax", include_self=False)
+
+    new_levels = new_keys[:, 0]
+    new_positions = grid.grid_position(new_keys[:, 1:], new_levels, positions.dtype)
+    keep = visibility_fraction(new_positions, new_levels, camera_centers, grid) > visible_threshold
+    return GrownAnchors(new_positions[keep], new_levels[keep], new_features[keep])
+
+
+def extra_level_increment(grads: Tensor, eligible: Tensor, levels: Tensor, grid: OctreeGrid,
+                          config: DensifyConfig) -> Tensor:
+    """Increment of eps_i: extra_up where the anchor's mean eligible gradient >= tau_l x extra_ratio.
+
+    grads, eligible [N,K]; levels [N] -> [N]. Applied once per adjustment with each anchor's own
+    level threshold (the base code applies it inside its per-level loop to all anchors, so eps can
+    rise by up to L x extra_up per adjustment; we take the level-aware reading).
+    """
+    mean_grad = grads.sum(1) / (eligible.sum(1) + 1e-6)
+    tau_extra = level_thresholds(levels, grid, config).to(grads) * config.extra_ratio
+    return config.extra_up * (mean_grad >= tau_extra).to(grads)
+
+
+def prune_decision(opacity_accum: Tensor, anchor_denom: Tensor, min_opacity: float, min_views: float
+                   ) -> tuple[Tensor, Tensor]:
+    """(prune [N] bool, judged [N] bool): judged anchors were seen in > min_views views; they are
+    pruned when their accumulated opacity < min_opacity x views."""
+    judged = anchor_denom > min_views
+    return judged & (opacity_accum < min_opacity * anchor_denom), judged

@@ -1,0 +1,338 @@
+"""AnchorField: the octree anchors as an nn.Module, with selection, CLCA, decoding and densification.
+
+Use from the model, per view::
+
+    visible_ids = field.select(camera, step)              # step=None at eval: all levels
+    gaussians = field.decode(camera, visible_ids)          # NeuralGaussians (CLCA applied)
+    out = rasterize(gaussians.means, ..., camera.viewmat, camera.K, W, H)
+    ... loss.backward() ...
+    field.accumulate_stats(gaussians, out.means2d.grad, out.radii, camera, step)
+
+and once per step after the optimizer update::
+
+    for group, (kept_rows, num_new) in field.densify(step).items():
+        optimizers.resize_group(group, field.param_groups()[group], kept_rows, num_new)
+
+``densify`` returns, for every parameter group whose rows changed, ``kept_rows`` ([R] long, rows of
+the old parameter that survive, in order) and ``num_new``: the group's new parameter is exactly
+``cat([old[kept_rows], num_new new rows])``, the shape contract of ``Optimizers.resize_group`` (Adam
+moments carried for kept rows, zeros for new rows). An empty dict means no shape changed. Counts of
+the last adjustment (grown per level, pruned) are in ``field.last_densify``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dataclass_field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from hico_plugin.cameras import Camera, Cameras
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.errors import HicoError
+from hico_plugin.field.context import ContextConfig
+from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
+from hico_plugin.field.densify import (
+    DensifyConfig, extra_level_increment, grow_anchors, offset_gradients, prune_decision)
+from hico_plugin.field.lod import active_level_count, frustum_visible, lod_visible, progressive_interval_ends
+from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree, knn_log_scale
+
+# Parameter groups whose rows are anchors (resized by densification), and the attribute holding each.
+ANCHOR_GROUPS = {"anchor": "anchors", "offset": "offsets", "anchor_feat": "anchor_features",
+                 "scaling": "log_scaling"}
+# Per-anchor buffers, resized together with the anchor parameters.
+ANCHOR_BUFFERS = ("levels", "extra_level", "opacity_accum", "anchor_denom", "offset_grad_accum",
+                  "offset_denom")
+
+
+@dataclass
+class FieldConfig(InstantiateConfig):
+    """The octree-anchor field: octree construction, LOD selection, CLCA, decoder, densification."""
+
+    feature_dim: int = 32
+    """d, the anchor feature size."""
+    octree: OctreeBuildConfig = dataclass_field(default_factory=OctreeBuildConfig)
+    context: ContextConfig = dataclass_field(default_factory=ContextConfig)
+    decoder: DecoderConfig = dataclass_field(default_factory=DecoderConfig)
+    densify: DensifyConfig = dataclass_field(default_factory=DensifyConfig)
+    reference_steps: int = 30_000
+    """Step values of the schedules (coarse_steps, densify.*) are written for a run of this many
+    optimizer steps; a run of T steps scales them by T / reference_steps."""
+    progressive: bool = True
+    """Coarse-to-fine: levels above octree.init_level switch on one by one during training."""
+    coarse_steps: int = 10_000
+    """Step at which the last level switches on (CityGS-X's coarse_iter)."""
+    coarse_factor: float = 1.5
+    """Each level's activation interval is this factor shorter than the previous one."""
+    frustum_margin: float = 0.15
+    """Anchors projecting up to this fraction of the image size outside it are kept (their Gaussians
+    spread around them)."""
+    near: float = 0.01
+    """Anchors closer than this to the camera plane (z) are culled."""
+    train_anchor_positions: bool = True
+    """Anchor positions get a learning rate (CityGS-X); False freezes them (Octree-GS, Scaffold-GS)."""
+
+    def setup(self, points: Tensor | None = None, train_cameras: Cameras | None = None,
+              num_train_cameras: int | None = None, total_steps: int | None = None, **kwargs) -> "AnchorField":
+        """Build the octree from sparse points [P,3] and the training cameras, then the field."""
+        if points is None or train_cameras is None:
+            raise HicoError("field: setup needs the sparse points and the training cameras")
+        points = torch.as_tensor(points, dtype=torch.float32)
+        centers = train_cameras.centers.float()
+        positions, levels, grid = build_octree(points, centers, self.octree)
+        return AnchorField(self, positions, levels, grid, centers,
+                           num_train_cameras if num_train_cameras is not None else len(train_cameras),
+                           total_steps)
+
+
+class AnchorField(nn.Module):
+    """Octree anchors (N of them) and the networks decoding them into Gaussians.
+
+    Parameters: anchors [N,3] (positions p), offsets [N,K,3] (delta), anchor_features [N,d] (f),
+    log_scaling [N,6] (log s; s[:3] scales the offsets, s[3:] bounds the children's scales).
+    Buffers: levels [N] long, extra_level [N] (eps, changed by densification only), the statistics
+    (opacity_accum [N], anchor_denom [N], offset_grad_accum [N,K], offset_denom [N,K]), the training
+    camera centres [C,3] (weed-out of new anchors) and the schedule counters. The octree grid
+    (``OctreeGrid``) is saved in the state dict as extra state. The base method's per-anchor rotation
+    and opacity are never trained nor read when decoding, so they are not stored.
+    """
+
+    def __init__(self, config: FieldConfig, positions: Tensor, levels: Tensor, grid: OctreeGrid,
+                 camera_centers: Tensor, num_train_cameras: int = 0, total_steps: int | None = None):
+        super().__init__()
+        self.config = config
+        self.grid = grid
+        num, k, d = positions.shape[0], config.decoder.num_offsets, config.feature_dim
+        self.anchors = nn.Parameter(positions.float().clone())
+        self.offsets = nn.Parameter(torch.zeros(num, k, 3))
+        self.anchor_features = nn.Parameter(torch.zeros(num, d))
+        self.log_scaling = nn.Parameter(knn_log_scale(self.anchors.detach())[:, None].repeat(1, 6))
+        self.register_buffer("levels", levels.long().clone())
+        self.register_buffer("extra_level", torch.zeros(num))
+        self.register_buffer("opacity_accum", torch.zeros(num))
+        self.register_buffer("anchor_denom", torch.zeros(num))
+        self.register_buffer("offset_grad_accum", torch.zeros(num, k))
+        self.register_buffer("offset_denom", torch.zeros(num, k))
+        self.register_buffer("train_camera_centers", camera_centers.float().clone())
+        self.register_buffer("stat_views", torch.zeros((), dtype=torch.long))
+        self.register_buffer("last_adjust_step", torch.zeros((), dtype=torch.long))
+        self.context = config.context.setup(feature_dim=d)
+        self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
+        self.set_total_steps(total_steps)
+        self.last_densify: dict[str, int] = {}
+
+    # ----- schedule -------------------------------------------------------------------------------
+
+    def set_total_steps(self, total_steps: int | None) -> None:
+        """Scale the step-valued schedules to a run of ``total_steps`` (None = reference length)."""
+        self.total_steps = total_steps
+        scale = 1.0 if not total_steps else total_steps / self.config.reference_steps
+        dens = self.config.densify
+        self.densify_start = int(round(dens.start_step * scale))
+        self.densify_interval = max(1, int(round(dens.interval * scale)))
+        self.densify_stop = int(round(dens.stop_step * scale))
+        coarse = self.config.coarse_steps * scale if self.config.progressive else 0
+        self.level_interval_ends = progressive_interval_ends(self.grid, coarse, self.config.coarse_factor)
+
+    def progressive_done(self, step: int | None) -> bool:
+        """Whether every level is active (growth into finer levels and eps updates allowed)."""
+        return step is None or not self.level_interval_ends or step > self.level_interval_ends[-1]
+
+    # ----- per view -------------------------------------------------------------------------------
+
+    @property
+    def num_anchors(self) -> int:
+        return self.anchors.shape[0]
+
+    def active_levels(self, step: int | None) -> int:
+        """Number of levels usable at ``step`` (coarse-to-fine schedule; None = all)."""
+        return active_level_count(self.grid, step, self.level_interval_ends)
+
+    @torch.no_grad()
+    def select(self, camera: Camera, step: int | None = None) -> Tensor:
+        """Anchors to decode for ``camera``: LOD (paper Eq. 1 with eps) then frustum culling.
+
+        step: training step (progressive levels) or None at eval (all levels). Returns visible_ids
+        [V] long, ascending.
+        """
+        positions = self.anchors.detach()
+        center = camera.center.to(positions)
+        lod = lod_visible(positions, self.levels, self.extra_level, center, self.grid,
+                          self.active_levels(step))
+        ids = lod.nonzero().squeeze(1)
+        radii = 3.0 * torch.exp(self.log_scaling.detach()[ids, :3]).amax(1)  # 3-sigma anchor extent
+        in_view = frustum_visible(positions[ids], radii, camera, self.config.near, self.config.frustum_margin)
+        return ids[in_view]
+
+    def decode(self, camera: Camera, visible_ids: Tensor, context_enabled: bool = True) -> NeuralGaussians:
+        """Neural Gaussians of the visible anchors; CLCA enhances their features unless disabled."""
+        features = self.anchor_features[visible_ids]
+        positions = self.anchors[visible_ids]
+        levels = self.levels[visible_ids]
+        if context_enabled:
+            features = self.context(features, levels, positions, self.grid)
+        return self.decoder(features, positions, self.offsets[visible_ids],
+                            torch.exp(self.log_scaling[visible_ids]), levels,
+                            camera.center.to(positions), camera.index, visible_ids)
+
+    # ----- optimisation -----------------------------------------------------------------------------
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Trainable parameters by group name (``clca`` / ``appearance`` only when they exist)."""
+        groups = {name: [getattr(self, attr)] for name, attr in ANCHOR_GROUPS.items()}
+        groups["mlp_opacity"] = list(self.decoder.mlp_opacity.parameters())
+        groups["mlp_cov"] = list(self.decoder.mlp_cov.parameters())
+        groups["mlp_color"] = list(self.decoder.mlp_color.parameters())
+        if any(True for _ in self.context.parameters()):
+            groups["clca"] = list(self.context.parameters())
+        if self.decoder.appearance is not None:
+            groups["appearance"] = list(self.decoder.appearance.parameters())
+        return groups
+
+    def default_lrs(self, spatial_lr_scale: float) -> dict[str, tuple[float, float | None]]:
+        """(lr_init, lr_final) per group (CityGS-X, algorithm_spec.md §5.2); None = constant.
+
+        The decay runs over the schedule's max_steps (the model's choice). The CLCA MLP follows the
+        colour MLP's schedule (paper Sec. 4.1).
+        """
+        anchor_lr = 1.6e-4 if self.config.train_anchor_positions else 0.0
+        lrs: dict[str, tuple[float, float | None]] = {
+            "anchor": (anchor_lr * spatial_lr_scale, anchor_lr * 1e-2 * spatial_lr_scale or None),
+            "offset": (0.01 * spatial_lr_scale, 1e-4 * spatial_lr_scale),
+            "anchor_feat": (0.0075, None),
+            "scaling": (0.007, None),
+            "mlp_opacity": (0.002, 2e-5),
+            "mlp_cov": (0.004, None),
+            "mlp_color": (0.008, 5e-5),
+            "clca": (0.008, 5e-5),
+            "appearance": (0.05, 5e-4),
+        }
+        return {name: lrs[name] for name in self.param_groups()}
+
+    @torch.no_grad()
+    def accumulate_stats(self, gaussians: NeuralGaussians, means2d_grad: Tensor, radii: Tensor,
+                         camera: Camera, step: int) -> None:
+        """Add one view to the densification statistics (until densify.stop_step).
+
+        means2d_grad [M,2]: dL/dmeans2d in pixels of this view's loss (the rasterizer's means2d.grad;
+        if the loss is a batch mean, multiply by the batch size first); it is converted to NDC units,
+        the scale of grad_threshold. radii [M] (or [M,2]): Gaussians with radius 0 were not drawn.
+        """
+        if not self.config.densify.enabled or step > self.densify_stop:
+            return
+        ids = gaussians.visible_ids
+        self.opacity_accum.index_add_(0, ids, gaussians.raw_opacities.clamp_min(0).sum(1).to(self.opacity_accum))
+        self.anchor_denom.index_add_(0, ids, torch.ones_like(ids, dtype=self.anchor_denom.dtype))
+        drawn = (radii.reshape(radii.shape[0], -1) > 0).any(1)
+        ndc = means2d_grad.detach() * means2d_grad.new_tensor([camera.width / 2, camera.height / 2])
+        grad_norm = ndc.norm(dim=-1)[drawn].to(self.offset_grad_accum)
+        offset_rows = (gaussians.anchor_ids * self.offsets.shape[1] + gaussians.child_ids)[drawn]
+        self.offset_grad_accum.view(-1).index_add_(0, offset_rows, grad_norm)
+        self.offset_denom.view(-1).index_add_(0, offset_rows, torch.ones_like(grad_norm))
+        self.stat_views += 1
+
+    def is_densify_step(self, step: int) -> bool:
+        return (self.config.densify.enabled and self.densify_start < step <= self.densify_stop
+                and step % self.densify_interval == 0)
+
+    @torch.no_grad()
+    def densify(self, step: int) -> dict[str, tuple[Tensor, int]]:
+        """Grow and prune anchors when the schedule says so; see the module docstring for the result.
+
+        Returns {group: (kept_rows [R] long, num_new)} for every anchor-row group, or {} when no shape
+        changed (not a densification step, or nothing grown or pruned).
+        """
+        if not self.is_densify_step(step):
+            return {}
+        cfg = self.config.densify
+        steps_elapsed = max(1, step - int(self.last_adjust_step))
+        check_views = self.densify_interval * float(self.stat_views) / steps_elapsed * cfg.success_threshold
+        grads, eligible = offset_gradients(self.offset_grad_accum, self.offset_denom, 0.5 * check_views)
+        allow_finer = self.progressive_done(step)
+        if allow_finer:
+            self.extra_level += extra_level_increment(grads, eligible, self.levels, self.grid, cfg)
+        threshold = self.config.octree.visible_threshold
+        grown = grow_anchors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
+                             self.offsets.detach(), self.log_scaling.detach(), grads, self.grid, cfg,
+                             self.train_camera_centers, max(threshold, 0.0), allow_finer)
+        self.offset_grad_accum[eligible] = 0
+        self.offset_denom[eligible] = 0
+        prune, judged = prune_decision(self.opacity_accum, self.anchor_denom, cfg.min_opacity, check_views)
+        self.opacity_accum[judged] = 0
+        self.anchor_denom[judged] = 0
+        self.stat_views.zero_()
+        self.last_adjust_step.fill_(step)
+
+        num_new = grown.positions.shape[0]
+        self.last_densify = {"grown": num_new, "pruned": int(prune.sum())}
+        for level in range(self.grid.num_levels):
+            self.last_densify[f"grown_level_{level}"] = int((grown.levels == level).sum())
+        if num_new == 0 and not prune.any():
+            return {}
+        kept_rows = (~prune).nonzero().squeeze(1)
+        self._resize(kept_rows, grown)
+        if prune.any():
+            self.log_scaling[:, 3:].clamp_(max=cfg.max_log_scale)
+        return {name: (kept_rows, num_new) for name in ANCHOR_GROUPS}
+
+    def _resize(self, kept_rows: Tensor, grown) -> None:
+        """Swap every per-anchor parameter / buffer for ``cat([old[kept_rows], new rows])``."""
+        num_new, k = grown.positions.shape[0], self.offsets.shape[1]
+        voxel = self.grid.voxel_size / float(self.grid.fork) ** grown.levels.to(torch.float32)
+        new_rows = {
+            "anchors": grown.positions.to(self.anchors),
+            "offsets": self.offsets.new_zeros(num_new, k, 3),
+            "anchor_features": grown.features.to(self.anchor_features),
+            "log_scaling": torch.log(voxel).to(self.log_scaling)[:, None].repeat(1, 6),
+        }
+        for attr, rows in new_rows.items():
+            old = getattr(self, attr)
+            setattr(self, attr, nn.Parameter(torch.cat([old.detach()[kept_rows], rows]),
+                                             requires_grad=old.requires_grad))
+        for name in ANCHOR_BUFFERS:
+            old = getattr(self, name)
+            rows = grown.levels.to(old) if name == "levels" else old.new_zeros(num_new, *old.shape[1:])
+            setattr(self, name, torch.cat([old[kept_rows], rows]))
+
+    # ----- introspection ----------------------------------------------------------------------------
+
+    def level_counts(self) -> Tensor:
+        """Anchors per level: [L] long."""
+        return torch.bincount(self.levels, minlength=self.grid.num_levels)
+
+    def anchor_points(self) -> tuple[Tensor, Tensor]:
+        """(positions [N,3], levels [N]) of all anchors, detached (viewer, export)."""
+        return self.anchors.detach(), self.levels
+
+    def stats(self) -> dict[str, float]:
+        """Counters for logs: total anchors and anchors per level."""
+        out = {"num_anchors": float(self.num_anchors)}
+        for level, count in enumerate(self.level_counts().tolist()):
+            out[f"anchors/level_{level}"] = float(count)
+        return out
+
+    # ----- state ------------------------------------------------------------------------------------
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return {"grid": self.grid.as_dict()}
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        self.grid = OctreeGrid.from_dict(state["grid"])
+        self.set_total_steps(self.total_steps)  # the level schedule depends on the grid's levels
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys,
+                              unexpected_keys, error_msgs):
+        # The checkpoint may hold a different number of anchors (densification) or training cameras:
+        # take its shapes before copying, so a freshly built field loads any checkpoint of the scene.
+        for name, tensor in list(self._parameters.items()) + list(self._buffers.items()):
+            saved = state_dict.get(prefix + name)
+            if tensor is None or saved is None or saved.shape == tensor.shape:
+                continue
+            fresh = tensor.new_empty(saved.shape)
+            if name in self._parameters:
+                setattr(self, name, nn.Parameter(fresh, requires_grad=tensor.requires_grad))
+            else:
+                setattr(self, name, fresh)
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys,
+                                      unexpected_keys, error_msgs)
