@@ -162,7 +162,7 @@ class LPIPS(nn.Module):
 
     def load_arrays(self, arrays: dict[str, np.ndarray]) -> None:
         state = {}
-        for i, conv in enumerate(self.convs):
+        for i in range(len(self.convs)):
             state[f"convs.{i}.weight"] = torch.from_numpy(arrays[f"conv{i}.weight"])
             state[f"convs.{i}.bias"] = torch.from_numpy(arrays[f"conv{i}.bias"])
         for j in range(len(self.heads)):
