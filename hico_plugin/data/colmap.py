@@ -76,8 +76,9 @@ def read_colmap_model(model_dir: Path) -> ColmapModel:
     points3d = reconstruction.points3D
     if len(points3d) == 0:
         raise HicoError(f"{model_dir}/points3D: the point cloud is empty (expected sparse points to seed anchors)")
-    points = np.array([point.xyz for point in points3d.values()], dtype=np.float64)
-    colors = np.array([point.color for point in points3d.values()], dtype=np.uint8)
+    by_id = [points3d[point_id] for point_id in sorted(points3d)]  # a stable order, whatever the map's
+    points = np.array([point.xyz for point in by_id], dtype=np.float64)
+    colors = np.array([point.color for point in by_id], dtype=np.uint8)
     if not np.isfinite(points).all():
         count = int((~np.isfinite(points).all(axis=1)).sum())
         raise HicoError(f"{model_dir}/points3D: {count} points have NaN/inf coordinates (expected finite points)")

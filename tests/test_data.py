@@ -1,0 +1,307 @@
+"""COLMAP data parser: camera models, formats, downscaling, normalisation, caches, ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from hico_plugin.data import ColmapDataParserConfig, SceneTransform
+from hico_plugin.data.cache import ByteLRUCache
+
+WIDTH, HEIGHT = 40, 30
+
+
+def look_at(centre: np.ndarray, target=np.zeros(3)) -> np.ndarray:
+    """[3, 4] cam_from_world of a camera at ``centre`` looking at ``target`` (OpenCV axes, z up)."""
+    forward = (target - centre) / np.linalg.norm(target - centre)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    return np.concatenate([rotation, -rotation @ centre[:, None]], axis=1)
+
+
+def write_dataset(
+    root: Path,
+    *,
+    model: str = "PINHOLE",
+    params: list[float] | None = None,
+    num_images: int = 6,
+    size: tuple[int, int] = (WIDTH, HEIGHT),
+    text: bool = False,
+    num_points: int = 40,
+    write_images: bool = True,
+    seed: int = 0,
+) -> dict:
+    """A small COLMAP dataset in ``root``: one shared camera, cameras on a ring looking at the origin,
+    random points near the origin, random PNGs. Returns what was written (COLMAP frame)."""
+    rng = np.random.default_rng(seed)
+    width, height = size
+    camera = pycolmap.Camera.create_from_model_name(1, model, 0.8 * width, width, height)
+    if params is not None:
+        camera.params = params
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.add_camera_with_trivial_rig(camera)
+    names, poses = [], []
+    for i in range(num_images):
+        angle = 2 * np.pi * i / num_images
+        pose = look_at(np.array([4 * np.cos(angle) + 1.0, 4 * np.sin(angle) - 2.0, 1.5]) , np.array([1.0, -2.0, 0.0]))
+        name = f"view_{i:03d}.png"
+        reconstruction.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(pose))
+        names.append(name)
+        poses.append(pose)
+    points = rng.uniform(-1, 1, (num_points, 3)) + np.array([1.0, -2.0, 0.0])
+    colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
+    for xyz, color in zip(points, colors):
+        reconstruction.add_point3D(xyz, pycolmap.Track(), color)
+    model_dir = root / "sparse" / "0"
+    model_dir.mkdir(parents=True)
+    (reconstruction.write_text if text else reconstruction.write_binary)(str(model_dir))
+    (root / "images").mkdir()
+    images = {}
+    if write_images:
+        for name in names:
+            images[name] = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+            cv2.imwrite(str(root / "images" / name), images[name][..., ::-1])
+    return {"names": names, "poses": np.stack(poses), "points": points, "colors": colors, "images": images, "camera": camera}
+
+
+def test_pinhole_binary_model_loads_normalised(tmp_path):
+    written = write_dataset(tmp_path, num_images=10)
+    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+
+    assert dataset.image_names == written["names"]
+    assert dataset.train_indices.dtype == torch.long
+    assert dataset.test_indices.tolist() == [0, 8]
+    assert dataset.train_indices.tolist() == [1, 2, 3, 4, 5, 6, 7, 9]
+    assert dataset.points.dtype == torch.float32 and dataset.points.shape == (40, 3)
+    assert torch.equal(dataset.point_colors, torch.from_numpy(written["colors"]))
+    # normalised frame: camera centres around the origin, the farthest at distance 1
+    centres = dataset.cameras.centers
+    assert centres.mean(0).abs().max() < 1e-5
+    assert centres.norm(dim=-1).max() == pytest.approx(1.0, abs=1e-5)
+    # the recorded transform maps points and viewmats back to COLMAP's frame
+    back = dataset.transform.points_to_colmap(dataset.points.double())
+    assert np.allclose(back.numpy(), written["points"], atol=1e-5)
+    viewmats = dataset.transform.viewmats_to_colmap(dataset.cameras.viewmats.double())
+    assert np.allclose(viewmats[:, :3].numpy(), written["poses"], atol=1e-5)
+    # the same point projects to the same pixel in both frames
+    K = dataset.cameras.Ks[3].double()
+    def project(viewmat, point):
+        cam = viewmat[:3, :3] @ point + viewmat[:3, 3]
+        return (K @ cam / cam[2])[:2]
+    colmap_pixel = project(torch.from_numpy(np.vstack([written["poses"][3], [0, 0, 0, 1]])), torch.from_numpy(written["points"][0]))
+    normalised_pixel = project(dataset.cameras.viewmats[3].double(), dataset.points[0].double())
+    assert torch.allclose(colmap_pixel, normalised_pixel, atol=1e-3)
+    # intrinsics and images at full resolution
+    assert torch.allclose(dataset.cameras.Ks[0], torch.tensor([[32.0, 0, 20], [0, 32, 15], [0, 0, 1]]))
+    image = dataset.image(2)
+    assert image.dtype == torch.uint8 and image.shape == (HEIGHT, WIDTH, 3)
+    assert np.array_equal(image.numpy(), written["images"][written["names"][2]])
+    assert dataset.mask(0) is None and dataset.gt_depth(0) is None and dataset.gt_surface_points is None
+    assert dataset.metadata == {}
+
+
+def test_legacy_text_model_simple_pinhole(tmp_path):
+    write_dataset(tmp_path, model="SIMPLE_PINHOLE", text=True, num_images=4)
+    for extra in ("rigs.txt", "frames.txt"):  # a COLMAP < 3.12 model has neither
+        (tmp_path / "sparse" / "0" / extra).unlink()
+    dataset = ColmapDataParserConfig(data=tmp_path, test_every=0, normalize=False).setup()
+    assert len(dataset) == 4 and len(dataset.test_indices) == 0
+    assert torch.allclose(dataset.cameras.Ks[0], torch.tensor([[32.0, 0, 20], [0, 32, 15], [0, 0, 1]]))
+    assert dataset.transform.scale == 1.0
+
+
+def test_explicit_test_names(tmp_path):
+    written = write_dataset(tmp_path)
+    dataset = ColmapDataParserConfig(data=tmp_path, test_names=(written["names"][4], written["names"][1])).setup()
+    assert dataset.test_indices.tolist() == [1, 4]
+    assert dataset.train_indices.tolist() == [0, 2, 3, 5]
+
+
+def test_downscale_resizes_on_load_or_reads_images_n(tmp_path):
+    write_dataset(tmp_path)
+    full = ColmapDataParserConfig(data=tmp_path).setup()
+    half = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
+    assert half.image(1).shape == (HEIGHT // 2, WIDTH // 2, 3)
+    assert torch.allclose(half.cameras.Ks[:, :2], full.cameras.Ks[:, :2] / 2)
+    assert half.cameras.widths.tolist() == [WIDTH // 2] * 6
+
+    (tmp_path / "images_2").mkdir()
+    for name in full.image_names:
+        cv2.imwrite(str(tmp_path / "images_2" / name), np.full((HEIGHT // 2, WIDTH // 2, 3), 7, np.uint8))
+    from_folder = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
+    assert (from_folder.image(0) == 7).all()
+
+
+def test_image_stored_at_exact_downscale_is_accepted(tmp_path):
+    written = write_dataset(tmp_path)
+    name = written["names"][0]
+    cv2.imwrite(str(tmp_path / "images" / name), np.full((HEIGHT // 2, WIDTH // 2, 3), 50, np.uint8))
+    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    assert dataset.image(0).shape == (HEIGHT, WIDTH, 3) and (dataset.image(0) == 50).all()
+
+
+def test_masks_ground_truth_and_metadata(tmp_path):
+    written = write_dataset(tmp_path)
+    name = written["names"][1]
+    (tmp_path / "masks").mkdir()
+    mask = np.zeros((HEIGHT, WIDTH), np.uint8)
+    mask[:, : WIDTH // 2] = 255
+    cv2.imwrite(str(tmp_path / "masks" / f"{name}.png"), mask)
+    depth = np.random.default_rng(1).uniform(1, 5, (HEIGHT, WIDTH)).astype(np.float32)
+    normal = np.zeros((HEIGHT, WIDTH, 3), np.float32)
+    normal[..., 2] = -1
+    surface = np.random.default_rng(2).normal(size=(100, 3)).astype(np.float32)
+    for kind, array in (("depth", depth), ("normal", normal)):
+        (tmp_path / "ground_truth" / kind).mkdir(parents=True)
+        np.save(tmp_path / "ground_truth" / kind / f"{Path(name).stem}.npy", array)
+    np.save(tmp_path / "ground_truth" / "surface_points.npy", surface)
+    (tmp_path / "scene.json").write_text('{"name": "tiny", "effects": ["exposure"]}')
+
+    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    loaded_mask = dataset.mask(1)
+    assert loaded_mask.dtype == torch.bool and loaded_mask.shape == (HEIGHT, WIDTH, 1)
+    assert loaded_mask[:, : WIDTH // 2].all() and not loaded_mask[:, WIDTH // 2 :].any()
+    assert dataset.mask(0) is None
+    assert dataset.gt_depth(1).shape == (HEIGHT, WIDTH, 1)
+    assert torch.allclose(dataset.gt_depth(1)[..., 0], torch.from_numpy(depth) * dataset.transform.scale)
+    assert torch.equal(dataset.gt_normal(1), torch.from_numpy(normal))
+    assert dataset.gt_depth(0) is None
+    assert torch.allclose(dataset.gt_surface_points, dataset.transform.points_from_colmap(torch.from_numpy(surface)))
+    assert dataset.metadata["effects"] == ["exposure"]
+
+    half = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
+    assert half.gt_depth(1).shape == (HEIGHT // 2, WIDTH // 2, 1)
+    assert set(np.unique(half.gt_depth(1).numpy())) <= set(np.unique(depth * np.float32(half.transform.scale)))
+    assert half.mask(1).shape == (HEIGHT // 2, WIDTH // 2, 1)
+
+
+# --------------------------------------------------------------------------- undistortion
+DISTORTED = {
+    "SIMPLE_RADIAL": ([60.0, 40.0, 30.0, -0.15], [-0.15, 0, 0, 0]),
+    "RADIAL": ([60.0, 41.0, 29.0, -0.12, 0.03], [-0.12, 0.03, 0, 0]),
+    "OPENCV": ([62.0, 58.0, 40.5, 29.5, -0.1, 0.02, 0.004, -0.003], [-0.1, 0.02, 0.004, -0.003]),
+}
+
+
+def pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A smooth colour image of normalised image coordinates: [..., 3] float in [0, 255]."""
+    return np.stack([127.5 + 100 * np.sin(3 * x) * np.cos(2 * y), 127.5 + 100 * np.cos(4 * y), 127.5 + 90 * np.sin(2 * x + y)], -1)
+
+
+@pytest.mark.parametrize("model", sorted(DISTORTED))
+def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
+    params, opencv_coefficients = DISTORTED[model]
+    size = (80, 60)
+    written = write_dataset(tmp_path, model=model, params=params, size=size, num_images=2, write_images=False)
+    # Render each distorted image independently of the parser: OpenCV's undistortPoints gives the
+    # normalised ray of every distorted pixel (OpenCV's pixel centres are integers, COLMAP's +0.5).
+    camera = written["camera"]
+    fx, fy = (params[0], params[0]) if model != "OPENCV" else params[:2]
+    cx, cy = params[1:3] if model != "OPENCV" else params[2:4]
+    K_opencv = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(size[0], dtype=np.float64), np.arange(size[1], dtype=np.float64))
+    pixels = np.stack([u.ravel(), v.ravel()], -1)[:, None]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    rays = cv2.undistortPoints(pixels, K_opencv, np.array(opencv_coefficients), None, np.eye(3), np.eye(3), criteria)[:, 0]
+    distorted = pattern(rays[:, 0], rays[:, 1]).reshape(size[1], size[0], 3).round().astype(np.uint8)
+    for name in written["names"]:
+        cv2.imwrite(str(tmp_path / "images" / name), distorted[..., ::-1])
+
+    dataset = ColmapDataParserConfig(data=tmp_path, test_every=0).setup()
+    assert camera.model.name == model
+    image = dataset.image(0).numpy().astype(np.float64)
+    K = dataset.cameras.Ks[0].double().numpy()
+    height, width = image.shape[:2]
+    assert (width, height) == (int(dataset.cameras.widths[0]), int(dataset.cameras.heights[0]))
+    assert K[0, 1] == 0 and K[2].tolist() == [0, 0, 1]
+    xs = (np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]
+    ys = (np.arange(height) + 0.5 - K[1, 2]) / K[1, 1]
+    expected = pattern(*np.meshgrid(xs, ys))
+    inner = (slice(3, -3), slice(3, -3))  # away from the border, where the distorted image ends
+    error = np.abs(image[inner] - expected[inner])
+    assert error.mean() < 1.5 and np.percentile(error, 99) < 6, (error.mean(), error.max())
+
+    # undistorted once: the cache on disk serves later loads, even if the original changes
+    cached = list((tmp_path / ".hico_cache").rglob(f"{written['names'][0]}.png"))
+    assert len(cached) == 1
+    cv2.imwrite(str(tmp_path / "images" / written["names"][0]), np.zeros_like(distorted))
+    again = ColmapDataParserConfig(data=tmp_path, test_every=0).setup()
+    assert np.array_equal(again.image(0).numpy(), image.astype(np.uint8))
+
+
+def test_opencv_undistortion_matches_cv2_undistort_points(tmp_path):
+    """A single bright pixel lands where cv2.undistortPoints sends it."""
+    params, coefficients = DISTORTED["OPENCV"]
+    written = write_dataset(tmp_path, model="OPENCV", params=params, size=(80, 60), num_images=2, write_images=False)
+    spot = np.zeros((60, 80, 3), np.uint8)
+    spot[12:15, 60:63] = 255  # centre (61, 13) in OpenCV pixels
+    for name in written["names"]:
+        cv2.imwrite(str(tmp_path / "images" / name), spot)
+    dataset = ColmapDataParserConfig(data=tmp_path, test_every=0, cache_dir=tmp_path / "elsewhere").setup()
+    image = dataset.image(1).numpy()[..., 0].astype(np.float64)
+    assert (tmp_path / "elsewhere").is_dir()
+    K = dataset.cameras.Ks[1].double().numpy()
+    K_opencv = np.array([[params[0], 0, params[2] - 0.5], [0, params[1], params[3] - 0.5], [0, 0, 1]])
+    P = K.copy()
+    P[:2, 2] -= 0.5
+    expected = cv2.undistortPoints(np.array([[[61.0, 13.0]]]), K_opencv, np.array(coefficients), P=P)[0, 0]
+    ys, xs = np.mgrid[: image.shape[0], : image.shape[1]]
+    centroid = np.array([(xs * image).sum(), (ys * image).sum()]) / image.sum()
+    assert np.abs(centroid - expected).max() < 0.35
+
+
+# --------------------------------------------------------------------------- extents and caches
+def test_camera_distance_range_matches_slow_reference(tmp_path):
+    write_dataset(tmp_path, num_images=9, num_points=300)
+    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    centres = dataset.cameras.centers.double().numpy()[dataset.train_indices.numpy()]
+    points = dataset.points.double().numpy()
+    per_camera = []
+    for centre in centres:
+        distances = np.linalg.norm(points - centre, axis=1)
+        per_camera += [np.quantile(distances, 0.001), np.quantile(distances, 0.999)]
+    dist_min, dist_max = dataset.camera_distance_range()
+    assert dist_min == pytest.approx(np.quantile(per_camera, 0.001), rel=1e-6)
+    assert dist_max == pytest.approx(np.quantile(per_camera, 0.999), rel=1e-6)
+    radius = np.linalg.norm(centres - centres.mean(0), axis=1).max()
+    assert dataset.cameras_extent() == pytest.approx(1.1 * radius, rel=1e-5)
+
+
+def test_image_cache_is_bounded_by_bytes(tmp_path):
+    write_dataset(tmp_path)
+    one_image = HEIGHT * WIDTH * 3
+    dataset = ColmapDataParserConfig(data=tmp_path, cache_mb=1).setup()
+    dataset.cache.max_bytes = 2 * one_image  # room for two decoded images
+    for i in range(len(dataset)):
+        dataset.image(i)
+    assert len(dataset.cache) == 2 and dataset.cache.num_bytes == 2 * one_image
+    assert ("image", 5) in dataset.cache and ("image", 0) not in dataset.cache
+
+
+def test_byte_lru_cache_evicts_least_recently_used():
+    cache = ByteLRUCache(max_bytes=300)
+    make = lambda: np.zeros(100, np.uint8)  # noqa: E731
+    for key in "abc":
+        cache.get(key, make)
+    cache.get("a", lambda: pytest.fail("'a' should be cached"))
+    cache.get("d", make)
+    assert "b" not in cache and all(k in cache for k in "acd")
+    assert cache.get("big", lambda: np.zeros(1000, np.uint8)).nbytes == 1000 and "big" not in cache
+
+
+def test_scene_transform_round_trip_and_dict():
+    transform = SceneTransform(torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64), 0.25)
+    points = torch.randn(5, 3, dtype=torch.float64)
+    assert torch.allclose(transform.points_to_colmap(transform.points_from_colmap(points)), points)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, 3] = torch.tensor([0.5, 0.1, 2.0])
+    assert torch.allclose(transform.viewmats_to_colmap(transform.viewmats_from_colmap(viewmat)), viewmat)
+    again = SceneTransform.from_dict(transform.to_dict())
+    assert torch.equal(again.centre, transform.centre) and again.scale == transform.scale
