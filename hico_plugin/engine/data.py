@@ -77,4 +77,4 @@ def make_batch(dataset: TrainDataset, indices: list[int], device: torch.device) 
     images = torch.stack([image for image, _ in views]).to(device)
     common = set.intersection(*(set(gt) for _, gt in views)) if views else set()
     gt = {key: torch.stack([v[1][key] for v in views]).to(device) for key in sorted(common)}
-    return TrainBatch(cameras=cameras, images=images, indices=torch.tensor(indices, dtype=torch.long), gt=gt)
+    return TrainBatch(cameras=cameras, images=images, indices=torch.tensor(indices, dtype=torch.long, device=device), gt=gt)

@@ -118,7 +118,9 @@ class TrainableModel(Protocol):
 
     def after_backward(self, step: int, output: StepOutput) -> None:
         """Called after ``loss.backward()`` (before gradient averaging). Statistics that must agree
-        across workers are reduced here with ``engine.distributed.all_reduce_sum_`` / ``_mean_``."""
+        across workers are reduced here with ``engine.distributed.all_reduce_sum_`` / ``_mean_``.
+        Gradients of per-view tensors (e.g. means2d) carry the 1/len(batch) of the batch mean: scale
+        them by ``len(batch)`` so a view's statistic does not depend on how the batch is split."""
         ...
 
     def after_optimizer_step(self, step: int, optimizers: "Optimizers") -> None:
