@@ -206,3 +206,17 @@ def test_sigint_saves_a_checkpoint_and_exits_cleanly(tmp_path):
     assert "stopped at 5 True" in completed.stdout
     assert "interrupt: saving a checkpoint" in completed.stderr
     assert latest_checkpoint(tmp_path / "run" / "checkpoints").name == "step-000000005.ckpt"
+
+
+def test_unreadable_checkpoint_and_missing_checkpoint_are_clear_errors(tmp_path):
+    config = toy_config(tmp_path, max_steps=2)
+    config.setup()  # writes config.yml, no checkpoint yet
+    with pytest.raises(HicoError, match="no checkpoint to load"):
+        load_run(tmp_path / "run" / "config.yml")
+    checkpoints = tmp_path / "run" / "checkpoints"
+    checkpoints.mkdir()
+    (checkpoints / ".step-000000009.ckpt.abc.tmp").write_bytes(b"torn")  # an interrupted write: ignored
+    (checkpoints / "step-000000005.ckpt").write_bytes(b"not a checkpoint")
+    assert latest_checkpoint(checkpoints).name == "step-000000005.ckpt"
+    with pytest.raises(HicoError, match="step-000000005.ckpt: not a readable checkpoint"):
+        toy_config(tmp_path, max_steps=2, resume=True).setup()
