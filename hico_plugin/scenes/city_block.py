@@ -30,7 +30,7 @@ class CityBlockConfig(SceneConfig):
     """Buildings with window-grid facades, flat gravel and tiled pitched roofs, on a street grid."""
 
     num_views: int = 96
-    surface_spacing: float = 0.25
+    surface_spacing: float = 0.4
     effects: CityBlockEffects = field(default_factory=CityBlockEffects)
     blocks: int = 3
     """Blocks per side of the square grid."""
@@ -38,7 +38,7 @@ class CityBlockConfig(SceneConfig):
     """Distance between neighbouring block centres (metres); streets run between blocks."""
     floor_height: float = 3.2
     """Storey height (window grid period, metres)."""
-    max_floors: int = 9
+    max_floors: int = 7
     """Tallest building, in storeys."""
 
     def _block_centers(self) -> np.ndarray:
@@ -87,7 +87,7 @@ class CityBlockConfig(SceneConfig):
                              color=(0.55, 0.25, 0.18), texture_scale=0.45)
                     )
                 elif floors >= 6 and rng.uniform() < 0.6:  # setback upper storeys
-                    extra = int(rng.integers(2, 5)) * floor
+                    extra = int(rng.integers(2, 4)) * floor
                     prims.append(
                         box((x, y, height + extra / 2), (0.6 * sx, 0.6 * sy, extra), yaw=yaw, material="facade",
                             color=wall, texture_scale=floor, top_material="roof_flat")
@@ -110,7 +110,7 @@ class CityBlockConfig(SceneConfig):
     def build_viewmats(self):
         span = self.blocks * self.block_pitch
         if self.effects.multi_distance:
-            radii, heights = [0.45 * span, 0.8 * span, 1.6 * span], [0.35 * span, 0.7 * span, 1.4 * span]
+            radii, heights = [0.5 * span, 0.85 * span, 1.6 * span], [0.5 * span, 0.75 * span, 1.4 * span]
         else:
             radii, heights = [0.8 * span], [0.7 * span]
         return orbit_rings(self.num_views, radii, heights, np.zeros(3), 0.2 * span, self.seed)
