@@ -37,9 +37,11 @@ def write_dataset(
     num_points: int = 40,
     write_images: bool = True,
     seed: int = 0,
+    edit=None,
 ) -> dict:
     """A small COLMAP dataset in ``root``: one shared camera, cameras on a ring looking at the origin,
-    random points near the origin, random PNGs. Returns what was written (COLMAP frame)."""
+    random points near the origin, random PNGs; ``edit(reconstruction)`` may spoil the model before it
+    is written. Returns what was written (COLMAP frame)."""
     rng = np.random.default_rng(seed)
     width, height = size
     camera = pycolmap.Camera.create_from_model_name(1, model, 0.8 * width, width, height)
@@ -59,6 +61,8 @@ def write_dataset(
     colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
     for xyz, color in zip(points, colors):
         reconstruction.add_point3D(xyz, pycolmap.Track(), color)
+    if edit is not None:
+        edit(reconstruction)
     model_dir = root / "sparse" / "0"
     model_dir.mkdir(parents=True)
     (reconstruction.write_text if text else reconstruction.write_binary)(str(model_dir))
@@ -68,7 +72,7 @@ def write_dataset(
         for name in names:
             images[name] = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
             cv2.imwrite(str(root / "images" / name), images[name][..., ::-1])
-    return {"names": names, "poses": np.stack(poses), "points": points, "colors": colors, "images": images, "camera": camera}
+    return {"names": names, "poses": np.array(poses).reshape(-1, 3, 4), "points": points, "colors": colors, "images": images, "camera": camera}
 
 
 def test_pinhole_binary_model_loads_normalised(tmp_path):

@@ -1,0 +1,160 @@
+"""Bad datasets: each is one HicoError line naming the file/field, and hico-inspect exits 2 with it."""
+
+from __future__ import annotations
+
+import sys
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from hico_plugin.cli import inspect as inspect_cli
+from hico_plugin.data import ColmapDataParserConfig
+from hico_plugin.errors import HicoError
+from test_data import HEIGHT, WIDTH, write_dataset
+
+
+def parse(root, **options):
+    return ColmapDataParserConfig(data=root, **options).setup()
+
+
+def expect_error(match: str, root, **options) -> str:
+    with pytest.raises(HicoError, match=match) as info:
+        parse(root, **options)
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def test_missing_directory(tmp_path):
+    expect_error(r"data directory .*nowhere: not found", tmp_path / "nowhere")
+
+
+def test_no_sparse_model(tmp_path):
+    (tmp_path / "images").mkdir()
+    expect_error(r"sparse/0: not found", tmp_path)
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    (tmp_path / "sparse" / "0" / "cameras.bin").write_bytes(b"")
+    expect_error(r"expected cameras, images and points3D as \.bin or \.txt", tmp_path)
+
+
+def test_truncated_model_file(tmp_path):
+    write_dataset(tmp_path)
+    images_bin = tmp_path / "sparse" / "0" / "images.bin"
+    images_bin.write_bytes(images_bin.read_bytes()[:30])
+    expect_error(r"sparse/0: cannot read the COLMAP model", tmp_path)
+
+
+def test_image_listed_but_not_on_disk(tmp_path):
+    written = write_dataset(tmp_path)
+    (tmp_path / "images" / written["names"][3]).unlink()
+    expect_error(r"view_003\.png: image listed in sparse/0 but not on disk \(1 of 6 missing\)", tmp_path)
+
+
+def test_missing_image_folder(tmp_path):
+    write_dataset(tmp_path)
+    expect_error(r"images_x: image folder not found \(set --images-dir", tmp_path, images_dir="images_x")
+
+
+def test_image_size_disagrees_with_camera(tmp_path):
+    written = write_dataset(tmp_path)
+    cv2.imwrite(str(tmp_path / "images" / written["names"][2]), np.zeros((HEIGHT, WIDTH + 3, 3), np.uint8))
+    dataset = parse(tmp_path)
+    dataset.image(1)
+    with pytest.raises(HicoError, match=r"view_002\.png: size 43x30 disagrees with camera 1 in sparse/0 \(40x30"):
+        dataset.image(2)
+    with pytest.raises(HicoError, match=r"view_002\.png: size 43x30"):
+        dataset.verify_images()
+
+
+@pytest.mark.parametrize("model", ["OPENCV_FISHEYE", "FULL_OPENCV"])
+def test_unsupported_camera_model(tmp_path, model):
+    write_dataset(tmp_path, model=model)
+    expect_error(rf"cameras: camera 1 has model {model}; supported models: PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL", tmp_path)
+
+
+def test_zero_registered_images(tmp_path):
+    write_dataset(tmp_path, num_images=0)
+    expect_error(r"the model has no registered images", tmp_path)
+
+
+def test_empty_point_cloud(tmp_path):
+    write_dataset(tmp_path, num_points=0)
+    expect_error(r"points3D: the point cloud is empty", tmp_path)
+
+
+def test_nan_point(tmp_path):
+    def spoil(reconstruction):
+        reconstruction.points3D[next(iter(reconstruction.points3D))].xyz = np.array([np.nan, 0.0, 0.0])
+
+    write_dataset(tmp_path, edit=spoil)
+    expect_error(r"points3D: 1 points have NaN/inf coordinates", tmp_path)
+
+
+def test_inf_pose(tmp_path):
+    def spoil(reconstruction):
+        matrix = reconstruction.frames[2].rig_from_world.matrix()
+        matrix[1, 3] = np.inf
+        reconstruction.frames[2].rig_from_world = pycolmap.Rigid3d(matrix)
+
+    write_dataset(tmp_path, edit=spoil)
+    expect_error(r"images: NaN/inf pose for \['view_001\.png'\]", tmp_path)
+
+
+def test_duplicate_image_names(tmp_path):
+    write_dataset(tmp_path, text=True, num_images=3)
+    images_txt = tmp_path / "sparse" / "0" / "images.txt"
+    images_txt.write_text(images_txt.read_text().replace("view_001.png", "view_000.png"))
+    expect_error(r"duplicate image names \['view_000\.png'\]", tmp_path)
+
+
+@pytest.mark.parametrize("truncate", ["png", "jpg"])
+def test_truncated_image_file(tmp_path, truncate):
+    written = write_dataset(tmp_path)
+    name = written["names"][4]
+    ok, encoded = cv2.imencode(f".{truncate}", np.full((HEIGHT, WIDTH, 3), 90, np.uint8))
+    (tmp_path / "images" / name).write_bytes(encoded.tobytes()[: len(encoded) // 2])
+    dataset = parse(tmp_path)
+    with pytest.raises(HicoError, match=r"view_004\.png: unreadable or truncated image file"):
+        dataset.image(4)
+    with pytest.raises(HicoError, match=r"view_004\.png: unreadable or truncated"):
+        dataset.verify_images()
+
+
+def test_test_split_leaving_no_training_images(tmp_path):
+    written = write_dataset(tmp_path, num_images=3)
+    expect_error(r"--test-every 1: the test split takes all 3 images", tmp_path, test_every=1)
+    expect_error(r"--test-names: the test split takes all 3 images", tmp_path, test_names=tuple(written["names"]))
+    expect_error(r"--test-names: \['nope\.png'\] are not registered", tmp_path, test_names=("nope.png",))
+
+
+def run_inspect(monkeypatch, capsys, *args) -> tuple[int, str, str]:
+    monkeypatch.setattr(sys, "argv", ["hico-inspect", *map(str, args)])
+    try:
+        inspect_cli.entrypoint()
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_inspect_prints_one_error_line_and_exits_2(tmp_path, monkeypatch, capsys):
+    write_dataset(tmp_path, num_points=0)
+    code, out, err = run_inspect(monkeypatch, capsys, tmp_path)
+    assert code == 2 and out == ""
+    assert err.startswith("error: ") and err.count("\n") == 1 and "point cloud is empty" in err
+
+
+def test_inspect_summary(tmp_path, monkeypatch, capsys):
+    write_dataset(tmp_path, num_images=10, model="SIMPLE_RADIAL", params=[32.0, 20.0, 15.0, -0.05])
+    (tmp_path / "scene.json").write_text('{"name": "probe"}')
+    code, out, err = run_inspect(monkeypatch, capsys, tmp_path, "--downscale", "2", "--verify-images")
+    assert code == 0, err
+    assert "(scene 'probe')" in out
+    assert "images       10 registered: 8 train, 2 test" in out
+    assert "cameras      1: SIMPLE_RADIAL x1  (1 undistorted to PINHOLE)" in out
+    assert "points       40 sparse points" in out
+    assert "LOD range" in out and "octree levels" in out
+    assert "verified     all 10 images" in out
