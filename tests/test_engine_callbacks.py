@@ -2,7 +2,6 @@
 
 import importlib.util
 import io
-from pathlib import Path
 
 import pytest
 

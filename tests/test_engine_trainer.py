@@ -1,8 +1,6 @@
 """Trainer end to end on the toy model: run directory, resume, Ctrl-C, non-finite losses, callbacks."""
 
 import json
-import os
-import signal
 import subprocess
 import sys
 import textwrap
