@@ -62,10 +62,10 @@ class FakeState:
 class RecordingRender:
     """render_fn that records its calls and paints a gradient (optionally failing or slow)."""
 
-    def __init__(self, fail_first: int = 0, seconds: float = 0.0, state: FakeState | None = None):
+    def __init__(self, fail: bool = False, seconds: float = 0.0, state: FakeState | None = None):
         self.calls: list[tuple[Any, RenderOptions]] = []
         self.steps_at_render: list[int] = []
-        self.fail_first = fail_first
+        self.fail = fail
         self.seconds = seconds
         self.state = state
 
@@ -73,7 +73,7 @@ class RecordingRender:
         self.calls.append((camera, options))
         if self.state is not None:
             self.steps_at_render.append(self.state.step)
-        if len(self.calls) <= self.fail_first:
+        if self.fail:
             raise RuntimeError("model exploded")
         time.sleep(self.seconds)
         ramp = np.linspace(0, 255, camera.width, dtype=np.float32).astype(np.uint8)
@@ -175,13 +175,15 @@ def test_busy_port_moves_to_the_next_one_and_prints_the_real_url(capsys):
 
 def test_render_errors_are_reported_and_rendering_goes_on():
     state = FakeState()
-    render = RecordingRender(fail_first=1)
+    render = RecordingRender(fail=True)
     viewer = Viewer(ViewerConfig(port=_free_port(), settle_seconds=0.05, max_resolution=128), render, state)
     client = ProtocolClient(viewer.port)
     try:
         client.send_camera(_LOOK_MINUS_Z, (0.0, 0.0, 4.0))
         assert _wait_for(lambda: viewer.last_error is not None)
         assert "model exploded" in viewer.last_error and "model exploded" in viewer._render_status.content
+        assert viewer._thread.is_alive()
+        render.fail = False  # the model recovered: the next camera move renders again
         client.send_camera(_LOOK_MINUS_Z, (0.0, 0.2, 4.0))
         assert _wait_for(lambda: viewer.render_count >= 1 and viewer.last_error is None)
         assert viewer._thread.is_alive()
