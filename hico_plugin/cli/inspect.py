@@ -24,6 +24,12 @@ class InspectConfig(ColmapDataParserConfig):
     """Also decode every image and mask (slow on big scenes; fills the undistortion cache)."""
 
 
+def scene_label(metadata: dict) -> str:
+    """The scene name from scene.json (built-in scenes write ``scene``; ``name`` is accepted too)."""
+    name = metadata.get("scene", metadata.get("name"))
+    return f"  (scene '{name}')" if name else ""
+
+
 def summarize(dataset: Dataset) -> list[str]:
     """The summary lines ``hico-inspect`` prints."""
     models = Counter(dataset.sources[camera_id].model for camera_id in set(dataset.camera_ids))
@@ -44,7 +50,7 @@ def summarize(dataset: Dataset) -> list[str]:
     ]
     centre = ", ".join(f"{v:.4g}" for v in dataset.transform.centre.tolist())
     lines = [
-        f"dataset      {dataset.data_dir}" + (f"  (scene '{dataset.metadata['name']}')" if "name" in dataset.metadata else ""),
+        f"dataset      {dataset.data_dir}" + scene_label(dataset.metadata),
         f"images       {len(dataset)} registered: {len(dataset.train_indices)} train, {len(dataset.test_indices)} test"
         f"  (from {dataset.image_paths[0].parent})",
         f"cameras      {len(dataset.sources)}: " + ", ".join(f"{model} x{n}" for model, n in sorted(models.items()))

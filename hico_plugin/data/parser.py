@@ -49,6 +49,12 @@ class ColmapDataParserConfig(InstantiateConfig):
     """Where undistorted images are cached; default DIR/.hico_cache, or ~/.cache/hico_plugin when DIR
     is read-only."""
 
+    def __post_init__(self) -> None:
+        # accept plain strings from Python callers and YAML configs
+        self.data = Path(self.data)
+        self.cache_dir = Path(self.cache_dir) if self.cache_dir is not None else None
+        self.test_names = tuple(self.test_names)
+
     def setup(self, **kwargs: Any) -> Dataset:
         return self.parse()
 
