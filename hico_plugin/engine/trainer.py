@@ -236,9 +236,10 @@ class Trainer:
                 )
             if self.is_main:
                 shutil.rmtree(self.checkpoint_dir)
-                for name in ("metrics.jsonl", "eval.json"):
-                    (self.run_dir / name).unlink(missing_ok=True)
             latest = None
+        if latest is None and self.is_main:  # a fresh run: no stale logs of an earlier attempt
+            for name in ("metrics.jsonl", "eval.json"):
+                (self.run_dir / name).unlink(missing_ok=True)
         dist_utils.barrier()
         if latest is not None:
             self.load_checkpoint(latest)
