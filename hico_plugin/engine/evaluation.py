@@ -52,7 +52,8 @@ def summarize(per_view: list[dict[str, Any]]) -> dict[str, float | None]:
 @torch.no_grad()
 def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], device: torch.device) -> dict[str, Any]:
     """Run ``model.eval_view`` on the views ``indices``; returns the summary plus ``fps``,
-    ``num_views`` and the model's ``stats()`` (``num_anchors``, ``num_gaussians``, ...).
+    ``num_views`` and the model's ``stats()`` (``num_anchors``, ``num_gaussians``, ...) for keys
+    eval_view did not report itself.
 
     fps = views / the summed ``render_seconds`` the model reports, else / the wall time of eval_view.
     """
@@ -78,7 +79,8 @@ def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], d
     total_seconds = render_seconds * len(per_view) if render_seconds is not None else wall_seconds
     results["fps"] = len(per_view) / total_seconds if total_seconds > 0 else None
     results["num_views"] = len(per_view)
-    results.update({k: float(v) for k, v in model.stats().items()})
+    for key, value in model.stats().items():  # per-view figures from eval_view take precedence
+        results.setdefault(key, float(value))
     return results
 
 
