@@ -29,7 +29,7 @@ class CityBlockEffects(SceneEffects):
 class CityBlockConfig(SceneConfig):
     """Buildings with window-grid facades, flat gravel and tiled pitched roofs, on a street grid."""
 
-    num_views: int = 96
+    num_views: int = 72
     surface_spacing: float = 0.4
     effects: CityBlockEffects = field(default_factory=CityBlockEffects)
     blocks: int = 3

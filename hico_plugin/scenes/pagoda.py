@@ -31,8 +31,8 @@ class PagodaEffects(SceneEffects):
 class PagodaConfig(SceneConfig):
     """A tiered tower on a stone platform among trees, seen from drone orbits at three heights."""
 
-    num_views: int = 96
-    surface_spacing: float = 0.1
+    num_views: int = 72
+    surface_spacing: float = 0.15
     sun_azimuth_deg: float = 120.0
     effects: PagodaEffects = field(default_factory=PagodaEffects)
     tiers: int = 5

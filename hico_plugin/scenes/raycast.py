@@ -30,13 +30,24 @@ class Primitive:
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         raise NotImplementedError
 
+    def may_block(self, direction: np.ndarray) -> bool:
+        """False when no ray along ``direction`` [3] can hit the solid (skips shadow tests)."""
+        return True
+
+    def hull_points(self) -> np.ndarray:
+        """[V, 3] points whose convex hull contains the solid (default: its bounding box corners)."""
+        center, radius = self.bounding_sphere()
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        return center + radius * signs
+
     def extent(self, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Min and max [3] of the solid's coordinates along the rows of ``basis`` [3, 3]."""
-        center, radius = self.bounding_sphere()
-        return basis @ center - radius, basis @ center + radius
+        coords = self.hull_points() @ basis.T
+        return coords.min(0), coords.max(0)
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
-        """Entry distance ``t`` [R] (> eps, inf if missed) and a face/part index [R] int."""
+        """Entry distance ``t`` [R] (> eps, inf if missed) and a face/part index [R] int.
+        origins: [R, 3] or [1, 3] (one origin for all rays)."""
         raise NotImplementedError
 
     def surface(self, points: np.ndarray, part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,9 +79,30 @@ class ConvexPolyhedron(Primitive):
         self.offsets = np.asarray(self.offsets, np.float64)
         self._u, self._v = _face_tangents(self.normals)
 
-    def extent(self, basis):
-        coords = self.vertices @ basis.T
-        return coords.min(0), coords.max(0)
+    def hull_points(self):
+        return self.vertices
+
+    def bounding_sphere(self) -> tuple[np.ndarray, float]:
+        center = 0.5 * (self.vertices.min(0) + self.vertices.max(0))
+        return center, float(np.linalg.norm(self.vertices - center, axis=1).max())
+
+    def intersect(self, origins, dirs, eps):
+        denom = dirs @ self.normals.T  # [R, F]
+        num = self.offsets[None] - origins @ self.normals.T  # [R or 1, F]; > 0: inside this plane
+        # a ray parallel to a plane gets a huge finite t: +big if inside (never the exit), -big if
+        # outside (an exit before any entry, so a miss)
+        denom[denom == 0] = 1e-300
+        t_plane = num / denom
+        entering = denom < 0
+        t_enter = np.max(t_plane, axis=1, where=entering, initial=-np.inf)
+        t_exit = np.min(t_plane, axis=1, where=~entering, initial=np.inf)
+        hit = (t_enter <= t_exit) & (t_enter > eps)
+        face = np.zeros(len(dirs), np.int64)
+        face[hit] = np.where(entering[hit], t_plane[hit], -np.inf).argmax(1)
+        return np.where(hit, t_enter, MISS), face
+
+    def hull_points(self):
+        return self.vertices
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         center = 0.5 * (self.vertices.min(0) + self.vertices.max(0))
@@ -107,6 +139,11 @@ class Revolution(Primitive):
     r0: float = 1.0
     r1: float = 1.0
 
+    def hull_points(self):
+        r = max(self.r0, self.r1)
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [0, 1])).reshape(3, -1).T
+        return np.asarray(self.base, np.float64) + signs * [r, r, self.height]
+
     def bounding_sphere(self):
         center = np.asarray(self.base, np.float64) + [0, 0, self.height / 2]
         return center, float(np.hypot(max(self.r0, self.r1), self.height / 2))
@@ -138,7 +175,7 @@ class Revolution(Primitive):
                 candidates.append(np.where(ok, t, MISS))
         stack = np.stack(candidates, 1)  # [R, 4]: side, side, bottom cap, top cap
         part = stack.argmin(1)
-        t = stack[np.arange(len(p)), part]
+        t = np.take_along_axis(stack, part[:, None], 1)[:, 0]
         return t, np.select([part < 2, part == 2], [0, 1], 2)
 
     def surface(self, points, part):
@@ -171,7 +208,7 @@ class Sphere(Primitive):
         sq = np.sqrt(np.maximum(disc, 0.0))
         t_near, t_far = -b - sq, -b + sq
         t = np.where(t_near > eps, t_near, np.where(t_far > eps, t_far, MISS))
-        return np.where(disc >= 0, t, MISS), np.zeros(len(p), np.int64)
+        return np.where(disc >= 0, t, MISS), np.zeros(len(dirs), np.int64)
 
     def surface(self, points, part):
         p = points - np.asarray(self.center)
@@ -187,6 +224,13 @@ class Ground(Primitive):
     z: float = 0.0
     half_extent: float = 100.0
 
+    def may_block(self, direction):
+        return direction[2] < 0  # seen from above only
+
+    def hull_points(self):
+        h = self.half_extent
+        return np.array([[-h, -h, self.z], [h, -h, self.z], [-h, h, self.z], [h, h, self.z]])
+
     def bounding_sphere(self):
         return np.array([0.0, 0.0, self.z]), self.half_extent * np.sqrt(2)
 
@@ -195,7 +239,7 @@ class Ground(Primitive):
             t = (self.z - origins[:, 2]) / dirs[:, 2]
         x, y = origins[:, 0] + t * dirs[:, 0], origins[:, 1] + t * dirs[:, 1]
         ok = (dirs[:, 2] < 0) & (t > eps) & (np.abs(x) <= self.half_extent) & (np.abs(y) <= self.half_extent)
-        return np.where(ok, t, MISS), np.zeros(len(origins), np.int64)
+        return np.where(ok, t, MISS), np.zeros(len(dirs), np.int64)
 
     def surface(self, points, part):
         return np.broadcast_to([0.0, 0.0, 1.0], points.shape).copy(), points[:, :2].copy()
@@ -300,7 +344,18 @@ class RayCaster:
         centers = self._centers @ viewmat[:3, :3].T + viewmat[:3, 3]  # [P, 3] camera frame
         everything = np.arange(width * height)
         out = []
-        for (x, y, z), r in zip(centers, self._radii):
+        for prim, (x, y, z), r in zip(self.primitives, centers, self._radii):
+            hull = prim.hull_points() @ viewmat[:3, :3].T + viewmat[:3, 3]
+            if (hull[:, 2] > 1e-9).all():  # in front: the projected hull's bounding box is exact
+                u = K[0, 0] * hull[:, 0] / hull[:, 2] + K[0, 2]
+                v = K[1, 1] * hull[:, 1] / hull[:, 2] + K[1, 2]
+                u0, u1 = int(np.clip(np.floor(u.min()), 0, width)), int(np.clip(np.ceil(u.max()) + 1, 0, width))
+                v0, v1 = int(np.clip(np.floor(v.min()), 0, height)), int(np.clip(np.ceil(v.max()) + 1, 0, height))
+                out.append(
+                    (np.arange(v0, v1)[:, None] * width + np.arange(u0, u1)[None]).ravel()
+                    if u0 < u1 and v0 < v1 else everything[:0]
+                )
+                continue
             ranges = []
             for lateral, focal, principal, size in ((x, K[0, 0], K[0, 2], width), (y, K[1, 1], K[1, 2], height)):
                 # the sphere seen in the (lateral, z) plane is a disc: bound its tangent angles exactly
@@ -335,7 +390,7 @@ class RayCaster:
         for index, (prim, rays) in enumerate(zip(self.primitives, candidates)):
             if rays.size == 0:
                 continue
-            t, part = prim.intersect(np.broadcast_to(origin, (rays.size, 3)), dirs[rays], self.eps)
+            t, part = prim.intersect(origin[None], dirs[rays], self.eps)  # origin broadcasts
             closer = t < best_t[rays]
             rays, t, part = rays[closer], t[closer], part[closer]
             best_t[rays], best_prim[rays], best_part[rays] = t, index, part
@@ -355,6 +410,8 @@ class RayCaster:
         sorted_a = coords[order, 0]
         blocked = np.zeros(len(origins), bool)
         for prim in self.primitives:
+            if not prim.may_block(direction):
+                continue
             lo, hi = prim.extent(basis)
             first, last = np.searchsorted(sorted_a, [lo[0] - self.eps, hi[0] + self.eps])
             rays = order[first:last]

@@ -159,7 +159,7 @@ def street(uv, points, color, scale):
     on_road_x, on_road_y = dx < road_half, dy < road_half  # on a road running along y / along x
     road = on_road_x | on_road_y
     crossing = on_road_x & on_road_y
-    noise = fbm(points[:, :2], 40.0 / scale)
+    noise = value_noise(points[:, :2], 40.0 / scale)
     asphalt = _tint(color, len(x)) * (0.8 + 0.4 * noise)[:, None]
     paving = np.array([0.62, 0.6, 0.55]) * (0.85 + 0.3 * noise)[:, None]
     block = np.array([0.55, 0.58, 0.48]) * (0.8 + 0.4 * value_noise(points[:, :2], 8.0 / scale))[:, None]
