@@ -1,4 +1,5 @@
-"""Distributed data parallel on 2 CPU processes (gloo, loopback): 2 workers x batch 1 == 1 worker x batch 2."""
+"""Distributed data parallel on 2 CPU processes (gloo, loopback): 2 workers x batch 1 (stopped after 7
+steps and resumed) == 1 worker x batch 2."""
 
 import os
 import socket
@@ -8,7 +9,7 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from hico_plugin.engine import TrainerConfig, all_reduce_mean_, all_reduce_sum_, is_main_process
+from hico_plugin.engine import TrainerCallback, TrainerConfig, all_reduce_mean_, all_reduce_sum_, is_main_process
 from hico_plugin.engine import distributed as dist_utils
 from hico_plugin.engine.checkpoints import list_checkpoints, load_checkpoint
 from test_engine_toy_model import ToyDataConfig, ToyModelConfig
@@ -16,11 +17,12 @@ from test_engine_toy_model import ToyDataConfig, ToyModelConfig
 MAX_STEPS = 16  # densifies at steps 4, 9 and 14: parameter shapes change 3 times
 
 
-def _config(output_dir: Path, batch_size: int) -> TrainerConfig:
+def _config(output_dir: Path, batch_size: int, resume: bool = False) -> TrainerConfig:
     return TrainerConfig(
         output_dir=output_dir, data=ToyDataConfig(), model=ToyModelConfig(densify_until=MAX_STEPS),
         max_steps=MAX_STEPS, batch_size=batch_size, seed=5, device="cpu", save_every=8, eval_every=8,
-        log_every=1, progress="none", vis="none", distributed_timeout_minutes=1.0,
+        log_every=1, progress="none", vis="none", resume=resume,
+        distributed_timeout_minutes=1.0,
     )
 
 
@@ -30,20 +32,39 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
+class _StopAfter(TrainerCallback):
+    """Asks to stop after step ``step``: it runs on rank 0 only, the stop reaches every rank."""
+
+    def __init__(self, step):
+        self.step, self.trainer = step, None
+
+    def on_train_start(self, trainer, step):
+        self.trainer = trainer
+
+    def on_step_end(self, step, metrics):
+        if step == self.step:
+            self.trainer.request_stop()
+
+
 def _worker(rank: int, world_size: int, port: int, output_dir: str, results_dir: str) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank),
                       WORLD_SIZE=str(world_size), LOCAL_RANK=str(rank))
     torch.set_num_threads(1)
     try:
-        trainer = _config(Path(output_dir), batch_size=1).setup()
+        first = _config(Path(output_dir), batch_size=1).setup(callbacks=[_StopAfter(6)])
         # The collective helpers the model uses for its statistics.
         probe = torch.tensor([float(rank + 1)])
         assert all_reduce_sum_(probe.clone()).item() == 3.0
         assert all_reduce_mean_(probe.clone()).item() == 1.5
         assert is_main_process() == (rank == 0)
-        result = trainer.train()
-        assert (result.checkpoint is not None) == (rank == 0)
-        torch.save(trainer.model.state_dict(), Path(results_dir) / f"rank{rank}.pt")
+        stopped = first.train()
+        assert stopped.interrupted and stopped.step == 7
+        assert (stopped.checkpoint is not None) == (rank == 0)
+        # Every rank resumes from rank 0's checkpoint, with its own RNG state.
+        resumed = _config(Path(output_dir), batch_size=1, resume=True).setup()
+        assert resumed.step == 7
+        resumed.train()
+        torch.save(resumed.model.state_dict(), Path(results_dir) / f"rank{rank}.pt")
     finally:
         dist_utils.shutdown()
 
