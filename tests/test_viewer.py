@@ -249,10 +249,12 @@ def test_run_viewer_state_follows_a_trainer():
 
 def test_training_cameras_are_capped_with_small_thumbnails():
     state = RunViewerState(DemoModel(), DemoDataset(30))
-    training = state.training_cameras(max_cameras=7, thumbnail_size=40)
-    assert len(training.cameras) == len(training.thumbnails) == len(training.indices) == 7
+    training = state.training_cameras(max_cameras=7)
+    assert len(training.cameras) == len(training.indices) == 7
     assert training.indices[0] == 0 and training.indices[-1] == 29
-    assert all(t.dtype == np.uint8 and max(t.shape[:2]) == 40 for t in training.thumbnails)
+    assert torch.equal(training.cameras.viewmats[1], state.dataset.cameras.viewmats[training.indices[1]])
+    thumbnail = state.thumbnail(training.indices[1], 40)
+    assert thumbnail.dtype == np.uint8 and thumbnail.shape == (30, 40, 3)
     assert evenly_spaced(3, 10) == [0, 1, 2]
     assert make_thumbnail(np.ones((10, 20, 3), np.float32), 8).shape == (4, 8, 3)
 

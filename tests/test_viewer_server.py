@@ -33,6 +33,7 @@ class FakeState:
         self.is_paused = False
         self.step = 0
         self.checkpoints = 0
+        self.thumbnails_read: list[int] = []
         self.cameras = orbit_cameras(num_cameras)
 
     def set_paused(self, paused: bool) -> None:
@@ -41,11 +42,13 @@ class FakeState:
     def request_checkpoint(self) -> None:
         self.checkpoints += 1
 
-    def training_cameras(self, max_cameras: int, thumbnail_size: int) -> TrainingCameras:
+    def training_cameras(self, max_cameras: int) -> TrainingCameras:
         count = min(max_cameras, len(self.cameras))
-        thumbnails = [np.full((thumbnail_size * 3 // 4, thumbnail_size, 3), 40 * i % 255, np.uint8) for i in range(count)]
-        subset = orbit_cameras(count)
-        return TrainingCameras(subset, thumbnails, list(range(count)))
+        return TrainingCameras(orbit_cameras(count), list(range(count)))
+
+    def thumbnail(self, index: int, size: int) -> np.ndarray:
+        self.thumbnails_read.append(index)
+        return np.full((size * 3 // 4, size, 3), 40 * index % 255, np.uint8)
 
     def anchors(self):
         positions = torch.randn(500, 3, generator=torch.Generator().manual_seed(0))
@@ -134,6 +137,7 @@ def test_viewer_renders_a_browser_camera_and_frees_its_port(capsys):
         printed = capsys.readouterr().out
         assert f"http://localhost:{port}" in printed and f"ssh -L {port}:localhost:{port}" in printed
         assert len(viewer._frustums) == 5 and viewer._num_levels == 3
+        assert _wait_for(lambda: state.thumbnails_read == [0, 1, 2, 3, 4] and viewer._frustums[-1].image is not None)
         client = ProtocolClient(port)
         client.send_camera(_LOOK_MINUS_Z, (0.5, 0.0, 4.0), fov=0.8, width=400, height=200)
         assert _wait_for(lambda: viewer.render_count >= 1 and render.calls[-1][0].width == 256)

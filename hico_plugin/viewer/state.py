@@ -51,10 +51,8 @@ class TrainingCameras:
 
     cameras: Cameras
     """C cameras (already capped in number by whoever built this)."""
-    thumbnails: list[np.ndarray] | None
-    """C uint8 [h, w, 3] small images drawn inside the frustums, or None."""
     indices: list[int]
-    """Dataset index of each camera, shown as the frustum's name."""
+    """Dataset index of each camera (frustum names; the key of ``ViewerState.thumbnail``)."""
 
 
 class ViewerState(Protocol):
@@ -88,7 +86,14 @@ class ViewerState(Protocol):
         """Ask the trainer to save a checkpoint after the current step."""
         ...
 
-    def training_cameras(self, max_cameras: int, thumbnail_size: int) -> TrainingCameras: ...
+    def training_cameras(self, max_cameras: int) -> TrainingCameras:
+        """At most ``max_cameras`` training cameras, evenly chosen."""
+        ...
+
+    def thumbnail(self, index: int, size: int) -> np.ndarray | None:
+        """uint8 [h, w, 3] image of dataset view ``index`` with longer side ``size`` (None: no image).
+        Called from the viewer's thread after start-up, one view at a time."""
+        ...
 
     def anchors(self) -> tuple[Tensor, Tensor]:
         """Anchor positions [A, 3] and octree levels [A]."""
@@ -207,7 +212,7 @@ class RunViewerState:
         if self._trainer is not None:
             self._trainer.request_checkpoint()
 
-    def training_cameras(self, max_cameras: int, thumbnail_size: int) -> TrainingCameras:
+    def training_cameras(self, max_cameras: int) -> TrainingCameras:
         train_indices = [int(i) for i in self.dataset.train_indices]
         chosen = [train_indices[p] for p in evenly_spaced(len(train_indices), max_cameras)]
         all_cameras: Cameras = self.dataset.cameras
@@ -216,10 +221,12 @@ class RunViewerState:
             all_cameras.viewmats[selection], all_cameras.Ks[selection],
             all_cameras.widths[selection], all_cameras.heights[selection],
         )
-        thumbnails = None
-        if thumbnail_size > 0 and hasattr(self.dataset, "image"):
-            thumbnails = [make_thumbnail(self.dataset.image(i), thumbnail_size) for i in chosen]
-        return TrainingCameras(cameras, thumbnails, chosen)
+        return TrainingCameras(cameras, chosen)
+
+    def thumbnail(self, index: int, size: int) -> np.ndarray | None:
+        if not hasattr(self.dataset, "image"):
+            return None
+        return make_thumbnail(self.dataset.image(index), size)
 
     def anchors(self) -> tuple[Tensor, Tensor]:
         positions, levels = self.model.viewer_anchors()

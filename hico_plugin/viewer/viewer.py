@@ -140,12 +140,13 @@ class Viewer:
         self.port = self.server.get_port()
         shown_host = "localhost" if config.host in ("127.0.0.1", "localhost", "::1") else config.host
         self.url = f"http://{shown_host}:{self.port}"
-        self._training_cameras = state.training_cameras(config.max_cameras, config.thumbnail_size)
+        self._training_cameras = state.training_cameras(config.max_cameras)
         self._scene_extent = self._camera_spread(self._training_cameras)
         self._build_gui()
         self._build_scene()
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self._on_disconnect)
+        self._thumbnail_thread = threading.Thread(target=self._load_thumbnails, name="hico-viewer-thumbnails", daemon=True)
         self._thread = threading.Thread(target=self._work, name="hico-viewer", daemon=True)
         self._thread.start()
         self._announce()
@@ -165,6 +166,8 @@ class Viewer:
         self._stop.set()
         self._wake.set()
         self._thread.join(timeout=10.0)
+        if self._thumbnail_thread.is_alive():
+            self._thumbnail_thread.join(timeout=10.0)
         self.server.stop()
 
     def serve_forever(self) -> None:
@@ -256,11 +259,10 @@ class Viewer:
         for position_in_list, dataset_index in enumerate(training.indices):
             camera = training.cameras[position_in_list]
             wxyz, position, fov_y, aspect = camera_to_viser(camera)
-            thumbnail = training.thumbnails[position_in_list] if training.thumbnails else None
             frustum = self.server.scene.add_camera_frustum(
                 f"/training_cameras/{dataset_index:05d}", fov=fov_y, aspect=aspect,
                 scale=self.config.frustum_scale * self._scene_extent, thickness=0.03 * self.config.frustum_scale * self._scene_extent,
-                image=thumbnail, wxyz=wxyz, position=position, color=(40, 90, 200),
+                wxyz=wxyz, position=position, color=(40, 90, 200),
             )
             frustum.on_click(lambda event, camera=camera: self.jump_to(event.client, camera))
             self._frustums.append(frustum)
@@ -283,6 +285,21 @@ class Viewer:
             client.camera.fov = fov_y
             client.camera.wxyz = wxyz
             client.camera.position = position
+
+    def _load_thumbnails(self) -> None:
+        """Put the training images into the frustums (in the background: reading them can be slow)."""
+        if self.config.thumbnail_size <= 0:
+            return
+        for frustum, dataset_index in zip(self._frustums, self._training_cameras.indices):
+            if self._stop.is_set():
+                return
+            try:
+                thumbnail = self.state.thumbnail(dataset_index, self.config.thumbnail_size)
+            except Exception as err:  # a missing image costs its thumbnail, not the viewer
+                self._report_error(f"thumbnail of view {dataset_index} failed", err)
+                continue
+            if thumbnail is not None:
+                frustum.image = thumbnail
 
     def _set_cameras_visible(self) -> None:
         for frustum in self._frustums:
@@ -354,6 +371,7 @@ class Viewer:
 
     # ------------------------------------------------------------------ the render thread
     def _work(self) -> None:
+        self._thumbnail_thread.start()
         last_refresh = -math.inf
         last_anchor_refresh = time.monotonic()
         seen_step = self.state.step

@@ -1,0 +1,64 @@
+"""hico-view: bad input is one error line; --demo serves until Ctrl-C and exits cleanly."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from hico_plugin.cli.view import ViewArgs, entrypoint, load_viewable_run
+from hico_plugin.errors import HicoError
+
+
+def test_missing_or_bad_config_is_one_clear_error(tmp_path, monkeypatch, capsys):
+    with pytest.raises(HicoError, match="--load-config"):
+        load_viewable_run(ViewArgs())
+    missing = tmp_path / "nope.yml"
+    monkeypatch.setattr(sys, "argv", ["hico-view", "--load-config", str(missing)])
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint()
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [f"error: --load-config: {missing} is not a file (expected RUN/config.yml)"]
+
+
+def test_demo_serves_and_stops_on_ctrl_c():
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hico_plugin.cli.view", "--demo", "--viewer.port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    lines: list[str] = []
+    served = threading.Event()
+
+    def read() -> None:
+        for line in process.stdout:
+            lines.append(line)
+            if "Ctrl-C to stop" in line:
+                served.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    try:
+        assert served.wait(120), "".join(lines)
+        output = "".join(lines)
+        assert re.search(rf"viewer: http://localhost:{port}\b", output)
+        assert f"ssh -L {port}:localhost:{port}" in output
+        with socket.create_connection(("127.0.0.1", port), timeout=5):
+            pass
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=60) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    time.sleep(0.1)
+    with socket.socket() as probe, pytest.raises(ConnectionRefusedError):
+        probe.connect(("127.0.0.1", port))
