@@ -21,10 +21,16 @@ class DataSourceConfig(ColmapDataParserConfig):
     scene: str = "city-block"
     """Built-in scene used when --data is not given (city-block, pagoda, tiny)."""
 
+    def __post_init__(self) -> None:
+        self.cache_dir = Path(self.cache_dir) if self.cache_dir is not None else None
+        self.test_names = tuple(self.test_names)
+        self.data = Path(self.data) if self.data is not None else None
+
     def setup(self, **kwargs: Any) -> Dataset:
         if self.data is not None:
             return super().setup(**kwargs)
         from hico_plugin.scenes.generate import generate_scene
 
-        parser = dataclasses.replace(self, data=generate_scene(self.scene))
-        return ColmapDataParserConfig.parse(parser)
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(ColmapDataParserConfig)}
+        fields["data"] = generate_scene(self.scene)
+        return ColmapDataParserConfig(**fields).parse()

@@ -1,0 +1,63 @@
+"""``hico-train PRESET [--data DIR] [--output-dir DIR] [--max-steps N] [any config override]``.
+
+Flags may stand before or after the preset name (unlike ns-train): the preset is moved to the front
+before tyro parses. Under ``torchrun --nproc_per_node=P hico-train ...`` every worker trains its share
+of the batch; only rank 0 writes files and serves the viewer.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import tyro
+
+from hico_plugin.cli import run_cli
+from hico_plugin.presets import PRESETS, HiCoTrainerConfig
+
+# Options whose value may coincide with a preset name; such a value is not the preset.
+_VALUE_OPTIONS = ("--method-name", "--experiment-name", "--method_name", "--experiment_name")
+
+
+def preset_first(args: Sequence[str]) -> list[str]:
+    """``args`` with the first preset name moved to the front, so flag order does not matter."""
+    args = list(args)
+    for i, arg in enumerate(args):
+        if arg in PRESETS and (i == 0 or args[i - 1] not in _VALUE_OPTIONS):
+            return [arg] + args[:i] + args[i + 1:]
+    return args
+
+
+def parse(args: Sequence[str]) -> HiCoTrainerConfig:
+    """The training config that ``hico-train args`` describes (defaults for naming filled in)."""
+    config = tyro.extras.overridable_config_cli(
+        PRESETS, args=preset_first(args), prog="hico-train",
+        description="Train HiCo-GS (or one of its ablations) on a COLMAP dataset or a built-in scene.")
+    if config.experiment_name == "unnamed":
+        config.experiment_name = config.data.data.name if config.data.data is not None else config.data.scene
+    if config.output_dir == Path("outputs/unnamed"):
+        config.output_dir = Path("outputs") / config.experiment_name / config.method_name
+    return config
+
+
+def train(config: HiCoTrainerConfig) -> None:
+    trainer = config.setup()
+    viewer = None
+    if trainer.is_main and config.wants_viewer():
+        from hico_plugin.viewer.viewer import attach_viewer
+
+        viewer = attach_viewer(trainer, config.viewer)
+    try:
+        result = trainer.train()
+    finally:
+        if viewer is not None:
+            viewer.stop()
+    if trainer.is_main and result.eval_results is not None:
+        summary = ", ".join(f"{k} {v:.4g}" for k, v in result.eval_results.items() if isinstance(v, float))
+        print(f"eval: {summary}")
+        print(f"run: {config.output_dir}")
+
+
+def entrypoint(argv: Sequence[str] | None = None) -> None:
+    run_cli(lambda: train(parse(sys.argv[1:] if argv is None else argv)))

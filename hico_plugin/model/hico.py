@@ -1,0 +1,212 @@
+"""HiCoModel: the anchor field, the renderer and the losses, and what each training step renders.
+
+One view, as the model runs it::
+
+    visible_ids = field.select(camera, step)             # LOD (Eq. 1) + frustum culling
+    gaussians   = field.decode(camera, visible_ids)      # CLCA (Sec. 3.3) + neural Gaussian MLPs
+    outputs     = renderer(gaussians..., outputs=required_outputs(step))
+    terms       = losses(outputs, target, step)          # L1 + D-SSIM, DNGC once w(t) > 0 (Sec. 3.4)
+
+"Compute only what the step calls for": the renderer is asked for the union of what the loss
+components read at this step, so before DNGC's t0 it composites RGB alone and no geometry buffer is
+ever allocated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field as dataclass_field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from hico_plugin.cameras import Camera, Cameras
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.engine.distributed import all_reduce_sum_
+from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainBatch
+from hico_plugin.errors import HicoError
+from hico_plugin.field.decoder import NeuralGaussians
+from hico_plugin.field.field import FieldConfig
+from hico_plugin.losses import LossesConfig
+from hico_plugin.losses.dngc import warmup_weight
+from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
+from hico_plugin.rasterizer import RenderOutputs
+from hico_plugin.rasterizer.renderer import RendererConfig
+
+EVAL_OUTPUTS = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "depth_normal")
+
+
+@dataclass
+class HiCoModelConfig(InstantiateConfig):
+    """HiCo-GS: octree anchors + CLCA + neural Gaussians, rendered by a swappable rasterizer, trained
+    with the photometric loss and DNGC."""
+
+    field: FieldConfig = dataclass_field(default_factory=FieldConfig)
+    """Anchor octree, LOD selection, context aggregation (CLCA), decoder and densification."""
+    renderer: RendererConfig = dataclass_field(default_factory=RendererConfig)
+    """Rasterizer backend and its options."""
+    losses: LossesConfig = dataclass_field(default_factory=LossesConfig)
+    """Loss components (photometric, DNGC)."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Colour composited behind the Gaussians."""
+    scale_schedules: bool = True
+    """Scale the step-valued schedules (DNGC t0 and T, like the field's densification and levels)
+    by max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
+    eval_lpips: str = "vgg"
+    """LPIPS backbone at evaluation ("vgg" as CityGS-X, "alex", or "none" to skip it)."""
+
+    def setup(self, dataset: Any = None, total_steps: int | None = None, **kwargs: Any) -> "HiCoModel":
+        if dataset is None:
+            raise HicoError("model: setup needs the dataset (sparse points and training cameras)")
+        return HiCoModel(self, dataset, total_steps)
+
+
+class HiCoModel(nn.Module):
+    """The HiCo-GS model; implements the engine's ``TrainableModel`` protocol."""
+
+    def __init__(self, config: HiCoModelConfig, dataset: Any, total_steps: int | None = None):
+        super().__init__()
+        self.config = config
+        train_ids = torch.as_tensor(dataset.train_indices, dtype=torch.long)
+        if len(train_ids) == 0:
+            raise HicoError("dataset: the training split is empty")
+        train_cameras = dataset.cameras
+        self.train_slot = {int(i): slot for slot, i in enumerate(train_ids.tolist())}
+        self.field = config.field.setup(points=dataset.points,
+                                        train_cameras=_subset(train_cameras, train_ids),
+                                        num_train_cameras=len(train_ids), total_steps=total_steps)
+        self.renderer = config.renderer.setup()
+        scale = (total_steps / config.field.reference_steps) if (config.scale_schedules and total_steps) else 1.0
+        dngc = config.losses.dngc
+        losses_config = dataclasses.replace(config.losses, dngc=dataclasses.replace(
+            dngc, start_step=int(round(dngc.start_step * scale)),
+            warmup_steps=int(round(dngc.warmup_steps * scale))))
+        self.dngc_config = losses_config.dngc
+        self.losses = losses_config.setup()
+        self.spatial_lr_scale = float(dataset.cameras_extent())
+        self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
+        self.last_num_gaussians = 0
+        self.context_enabled = True  # the viewer's CLCA toggle; training always uses the config
+
+    # ----- rendering ------------------------------------------------------------------------------
+
+    def appearance_camera(self, camera: Camera) -> Camera:
+        """The camera with its index mapped to the training slot of the appearance embedding
+        (-1 for views that are not training views)."""
+        slot = self.train_slot.get(camera.index, -1)
+        return Camera(camera.viewmat, camera.K, camera.width, camera.height, slot)
+
+    def required_outputs(self, step: int) -> set[str]:
+        """Render outputs a training step needs: the losses' union (rgb alone before DNGC starts)."""
+        return {"rgb"} | self.losses.required_outputs(step)
+
+    def render(self, camera: Camera, outputs: tuple[str, ...] | set[str] = ("rgb",), step: int | None = None,
+               context_enabled: bool = True) -> tuple[RenderOutputs, NeuralGaussians]:
+        """Render ``camera`` (step None = evaluation: every level active)."""
+        device = self.background.device
+        camera = self.appearance_camera(camera.to(device))
+        visible_ids = self.field.select(camera, step)
+        gaussians = self.field.decode(camera, visible_ids, context_enabled=context_enabled)
+        out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                            gaussians.colors, camera, outputs=tuple(sorted(outputs)),
+                            background=self.background)
+        return out, gaussians
+
+    # ----- TrainableModel --------------------------------------------------------------------------
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return self.field.param_groups()
+
+    def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
+        return {name: LRSchedule(lr_init, lr_final, max_steps)
+                for name, (lr_init, lr_final) in self.field.default_lrs(self.spatial_lr_scale).items()}
+
+    def train_step(self, batch: TrainBatch, step: int) -> StepOutput:
+        wanted = self.required_outputs(step)
+        total = None
+        term_sums: dict[str, float] = {}
+        views = []
+        psnrs = []
+        for camera, image in zip(batch.cameras, batch.images):
+            out, gaussians = self.render(camera, wanted, step)
+            if out.means2d is not None and out.means2d.requires_grad:
+                out.means2d.retain_grad()
+            terms = self.losses(out, image, step)
+            view_loss = sum(terms.values())
+            total = view_loss if total is None else total + view_loss
+            for name, value in terms.items():
+                term_sums[name] = term_sums.get(name, 0.0) + float(value.detach())
+            with torch.no_grad():
+                psnrs.append(float(psnr(out.rgb.clamp(0, 1), image)))
+            views.append((camera, gaussians, out))
+        count = len(views)
+        metrics: dict[str, float | Tensor] = {f"loss/{k}": v / count for k, v in term_sums.items()}
+        metrics["psnr"] = sum(psnrs) / count
+        metrics["dngc_weight"] = self.dngc_weight(step)
+        self.last_num_gaussians = len(views[-1][1])
+        return StepOutput(loss=total / count, metrics=metrics, extras={"views": views, "batch_size": count})
+
+    def after_backward(self, step: int, output: StepOutput) -> None:
+        batch_size = output.extras["batch_size"]
+        for camera, gaussians, out in output.extras["views"]:
+            grad = out.means2d.grad
+            if grad is None:
+                continue
+            # The loss is a batch mean; the statistic is defined on one view's loss.
+            self.field.accumulate_stats(gaussians, grad * batch_size, out.radii, camera, step)
+
+    def after_optimizer_step(self, step: int, optimizers: Any) -> None:
+        if not self.field.is_densify_step(step):
+            return
+        # Every worker must grow and prune identically: sum the statistics over workers first.
+        for name in ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom", "stat_views"):
+            all_reduce_sum_(getattr(self.field, name))
+        resized = self.field.densify(step)
+        groups = self.field.param_groups()
+        for group, (kept_rows, num_new) in resized.items():
+            optimizers.resize_group(group, groups[group], kept_rows, num_new)
+
+    @torch.no_grad()
+    def eval_view(self, camera: Camera, image: Tensor, gt: dict[str, Tensor]) -> dict[str, Any]:
+        start = time.perf_counter()
+        self.render(camera, ("rgb",))  # timed alone: the fps a viewer would see
+        render_seconds = time.perf_counter() - start
+        out, gaussians = self.render(camera, EVAL_OUTPUTS)
+        rgb = out.rgb.clamp(0, 1)
+        image = image.to(rgb)
+        results: dict[str, Any] = {"psnr": float(psnr(rgb, image)), "ssim": float(ssim(rgb, image)),
+                                   "render_seconds": render_seconds, "num_gaussians": float(len(gaussians))}
+        if self.config.eval_lpips != "none":
+            value = lpips(rgb, image, net=self.config.eval_lpips)
+            results["lpips"] = None if value is None else float(value)
+        if gt.get("depth") is not None:
+            results["depth_abs_rel"] = _or_none(lambda: depth_abs_rel(out.plane_depth, gt["depth"].to(rgb)))
+        if gt.get("normal") is not None:
+            err = _or_none(lambda: normal_angular_error(out.normal, gt["normal"].to(rgb)))
+            results["normal_error_deg"] = None if err is None else err.mean_deg
+            results["normal_error_median_deg"] = None if err is None else err.median_deg
+        results["images"] = {"rgb": rgb, "gt": image}
+        return results
+
+    def dngc_weight(self, step: int) -> float:
+        cfg = self.dngc_config
+        return warmup_weight(step, cfg.start_step, cfg.warmup_steps) if cfg.enabled else 0.0
+
+    def stats(self) -> dict[str, float]:
+        out = self.field.stats()
+        out["num_gaussians"] = float(self.last_num_gaussians)
+        return out
+
+
+def _subset(cameras: Cameras, ids: Tensor) -> Cameras:
+    return Cameras(cameras.viewmats[ids], cameras.Ks[ids], cameras.widths[ids], cameras.heights[ids])
+
+
+def _or_none(fn):
+    """A geometry metric, or None when the view has no pixel both sides cover."""
+    try:
+        return fn()
+    except HicoError:
+        return None
