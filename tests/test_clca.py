@@ -61,7 +61,7 @@ def slow_triplet(features, levels, positions, rule, reduce):
 def test_triplet_matches_slow_loop(rule, reduce):
     for seed in range(3):
         features, levels, positions = random_visible_anchors(seed, num=100 if seed else 200)
-        fast = context_triplet(features, levels, positions, GRID, rule, reduce)
+        fast = context_triplet(features, levels, positions, GRID, rule, reduce).unbind(1)
         slow = slow_triplet(features, levels, positions, rule, reduce)
         for name, a, b in zip(("parent", "self", "child"), fast, slow):
             torch.testing.assert_close(a, b, msg=f"{name} context differs (seed {seed})")
@@ -73,8 +73,8 @@ def test_rules_differ_on_odd_indices():
     index = torch.tensor([[3, 0, 0], [1, 0, 0], [2, 0, 0]])
     positions = GRID.grid_position(index, levels)
     features = torch.tensor([[0.0], [10.0], [20.0]])
-    floor_parent = context_triplet(features, levels, positions, GRID, "floor")[0]
-    round_parent = context_triplet(features, levels, positions, GRID, "round")[0]
+    floor_parent = context_triplet(features, levels, positions, GRID, "floor")[:, 0]
+    round_parent = context_triplet(features, levels, positions, GRID, "round")[:, 0]
     assert floor_parent[0].item() == 10.0 and round_parent[0].item() == 20.0
 
 
@@ -86,7 +86,7 @@ def test_fallbacks_to_self_context():
     index = torch.tensor([[7, 7, 7], [4, 4, 4], [4, 4, 4], [2, 2, 2]])
     positions = GRID.grid_position(index, levels)
     features = torch.tensor([[1.0], [2.0], [4.0], [8.0]])
-    parent, own, child = context_triplet(features, levels, positions, GRID)
+    parent, own, child = context_triplet(features, levels, positions, GRID).unbind(1)
     assert own.squeeze(1).tolist() == [1.0, 3.0, 3.0, 8.0]
     assert parent.squeeze(1).tolist() == [1.0, 8.0, 8.0, 8.0]
     assert child.squeeze(1).tolist() == [1.0, 3.0, 3.0, 3.0]
@@ -94,7 +94,7 @@ def test_fallbacks_to_self_context():
     levels = torch.cat([levels, torch.tensor([0])])
     positions = torch.cat([positions, GRID.grid_position(torch.tensor([[1, 1, 1]]), torch.tensor([0]))])
     features = torch.cat([features, torch.tensor([[16.0]])])
-    parent, _, child = context_triplet(features, levels, positions, GRID)
+    parent, _, child = context_triplet(features, levels, positions, GRID).unbind(1)
     assert parent.squeeze(1).tolist() == [1.0, 8.0, 8.0, 16.0, 16.0]
     assert child.squeeze(1).tolist() == [1.0, 3.0, 3.0, 3.0, 8.0]
 

@@ -57,7 +57,8 @@ def test_octree_invariants_on_random_clouds():
         positions, levels, grid = build_octree(points, cameras.centers, OctreeBuildConfig())
         origin = torch.tensor(grid.origin)
         assert grid.num_levels >= 2 and grid.fork == 2
-        assert ((points >= origin) & (points <= origin + grid.cube_size)).all(), "cube must enclose all points"
+        lo, hi = map(torch.tensor, grid.bbox)
+        assert ((points >= lo) & (points <= hi)).all(), "cube must enclose all points"
         index = grid.grid_index(positions, levels)
         torch.testing.assert_close(grid.grid_position(index, levels), positions)  # on grid points
         keys = torch.cat([levels[:, None], index], 1)

@@ -70,8 +70,8 @@ def _pool(features: Tensor, ids: Tensor, num_cells: int, reduce: str) -> tuple[T
 
 
 def context_triplet(features: Tensor, levels: Tensor, positions: Tensor, grid: OctreeGrid,
-                    parent_rule: ParentRule = "floor", reduce: str = "mean") -> tuple[Tensor, Tensor, Tensor]:
-    """(c_parent, c_self, c_child), each [V,d], for the visible anchors of one view.
+                    parent_rule: ParentRule = "floor", reduce: str = "mean") -> Tensor:
+    """The contexts (c_parent, c_self, c_child) of the visible anchors of one view: [V,3,d].
 
     features [V,d] raw anchor features f; levels [V] long; positions [V,3]; reduce "mean" | "amax".
     """
@@ -86,16 +86,18 @@ def context_triplet(features: Tensor, levels: Tensor, positions: Tensor, grid: O
     ids, num_cells = dense_cell_ids(torch.cat([self_keys, parent_keys]))
     self_ids, parent_ids = ids[:num], ids[num:]
 
+    # Level-0 anchors have no coarser cell: they pool into a spare row, dropped below.
     has_coarser = levels > 0
     self_pool, self_counts = _pool(features, self_ids, num_cells, reduce)
-    child_pool, child_counts = _pool(features[has_coarser], parent_ids[has_coarser], num_cells, reduce)
-
-    c_self = self_pool[self_ids]
-    parent_found = (has_coarser & (self_counts[parent_ids] > 0))[:, None]
-    c_parent = torch.where(parent_found, self_pool[parent_ids], c_self)
-    child_found = (child_counts[self_ids] > 0)[:, None]
-    c_child = torch.where(child_found, child_pool[self_ids], c_self)
-    return c_parent, c_self, c_child
+    child_pool, child_counts = _pool(features, torch.where(has_coarser, parent_ids, num_cells),
+                                     num_cells + 1, reduce)
+    # Rows of [self_pool; child_pool] to read, with the fallbacks resolved on integer ids, so the
+    # whole triplet is one index_select (cheap forward and backward).
+    parent_rows = torch.where(has_coarser & (self_counts[parent_ids] > 0), parent_ids, self_ids)
+    child_rows = torch.where(child_counts[self_ids] > 0, num_cells + self_ids, self_ids)
+    table = torch.cat([self_pool, child_pool[:num_cells]])
+    rows = torch.stack([parent_rows, self_ids, child_rows], 1).reshape(-1)
+    return table.index_select(0, rows).view(num, 3, features.shape[1])
 
 
 @dataclass
@@ -161,7 +163,7 @@ class MeanContext(ContextAggregator):
 
     def forward(self, features, levels, positions, grid):
         triplet = context_triplet(features, levels, positions, grid, self.config.parent_rule, self.reduce)
-        return features + self.mlp(torch.cat(triplet, dim=1))
+        return features + self.mlp(triplet.flatten(1))
 
 
 @CONTEXT_AGGREGATORS.register("max")
@@ -193,8 +195,7 @@ class AttentionContext(ContextAggregator):
             nn.init.zeros_(self.out.bias)
 
     def forward(self, features, levels, positions, grid):
-        triplet = torch.stack(context_triplet(features, levels, positions, grid, self.config.parent_rule),
-                              dim=1) + self.roles  # [V,3,d]
+        triplet = context_triplet(features, levels, positions, grid, self.config.parent_rule) + self.roles
         q = self.query(features)  # [V,h]
         k, v = self.key(triplet), self.value(triplet)  # [V,3,h]
         weights = torch.softmax((k @ q[:, :, None]).squeeze(-1) / math.sqrt(q.shape[1]), dim=1)  # [V,3]

@@ -75,11 +75,15 @@ class FieldConfig(InstantiateConfig):
 
     def setup(self, points: Tensor | None = None, train_cameras: Cameras | None = None,
               num_train_cameras: int | None = None, total_steps: int | None = None, **kwargs) -> "AnchorField":
-        """Build the octree from sparse points [P,3] and the training cameras, then the field."""
+        """Build the octree from sparse points [P,3] and the training cameras, then the field.
+
+        The field is built on the CPU; move it with ``.to(device)`` like any module. ``total_steps``
+        (the run's optimizer steps) scales the schedules; None keeps ``reference_steps``.
+        """
         if points is None or train_cameras is None:
             raise HicoError("field: setup needs the sparse points and the training cameras")
-        points = torch.as_tensor(points, dtype=torch.float32)
-        centers = train_cameras.centers.float()
+        points = torch.as_tensor(points, dtype=torch.float32).cpu()
+        centers = train_cameras.centers.float().cpu()
         positions, levels, grid = build_octree(points, centers, self.octree)
         return AnchorField(self, positions, levels, grid, centers,
                            num_train_cameras if num_train_cameras is not None else len(train_cameras),

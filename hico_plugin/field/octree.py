@@ -41,10 +41,10 @@ class OctreeGrid:
     d_std: float
     init_level: int
 
-    def level_voxel_sizes(self, device: torch.device | str = "cpu") -> Tensor:
-        """Voxel size of every level: [L] float32."""
-        levels = torch.arange(self.num_levels, device=device, dtype=torch.float32)
-        return self.voxel_size / float(self.fork) ** levels
+    @property
+    def bbox(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(min corner, max corner) of the octree's cube."""
+        return self.origin, tuple(x + self.cube_size for x in self.origin)
 
     def origin_tensor(self, like: Tensor) -> Tensor:
         return torch.tensor(self.origin, dtype=like.dtype, device=like.device)
