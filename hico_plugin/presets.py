@@ -75,3 +75,16 @@ PRESETS: dict[str, tuple[str, HiCoTrainerConfig]] = {
                      _with(_paper(), "hico-gs-attn", context="attention")),
 }
 """Preset name -> (description, config)."""
+
+
+def write_preset_files(directory: str) -> None:
+    """Write every preset as ``DIRECTORY/<name>.yml`` (the repository's ``configs/``): the resolved
+    configs, readable and loadable with ``hico_plugin.engine.load_config``. Regenerate them with
+    ``python -c "from hico_plugin.presets import write_preset_files; write_preset_files('configs')"``."""
+    from pathlib import Path
+
+    from hico_plugin.engine.config_io import save_config
+
+    for name, (_, config) in PRESETS.items():
+        save_config(config, Path(directory) / f"{name}.yml")
+

@@ -103,16 +103,43 @@ class HiCoModel(nn.Module):
         return {"rgb"} | self.losses.required_outputs(step)
 
     def render(self, camera: Camera, outputs: tuple[str, ...] | set[str] = ("rgb",), step: int | None = None,
-               context_enabled: bool = True) -> tuple[RenderOutputs, NeuralGaussians]:
-        """Render ``camera`` (step None = evaluation: every level active)."""
+               context_enabled: bool = True, level_range: tuple[int, int] | None = None
+               ) -> tuple[RenderOutputs, NeuralGaussians]:
+        """Render ``camera`` (step None = evaluation: every level active); ``level_range`` keeps only
+        anchors of those octree levels (inclusive; the viewer's LOD override)."""
         device = self.background.device
         camera = self.appearance_camera(camera.to(device))
         visible_ids = self.field.select(camera, step)
+        if level_range is not None:
+            levels = self.field.levels[visible_ids]
+            visible_ids = visible_ids[(levels >= level_range[0]) & (levels <= level_range[1])]
         gaussians = self.field.decode(camera, visible_ids, context_enabled=context_enabled)
         out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                             gaussians.colors, camera, outputs=tuple(sorted(outputs)),
                             background=self.background)
         return out, gaussians
+
+    # ----- viewer (hico_plugin.viewer.state.ViewableModel) ----------------------------------------
+
+    @torch.no_grad()
+    def viewer_render(self, camera: Camera, options: Any) -> dict[str, Tensor]:
+        """The render outputs ``options.required_outputs`` names; "level" is the alpha-normalised
+        octree level of the drawn Gaussians, composited as a colour channel."""
+        wanted = set(options.required_outputs) - {"level"}
+        out, gaussians = self.render(camera, wanted or {"alpha"}, None, options.clca_enabled,
+                                     options.level_range)
+        images = out.images()
+        if "level" in options.required_outputs:
+            levels = self.field.levels[gaussians.anchor_ids].to(gaussians.means)[:, None]
+            level_out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales,
+                                      gaussians.opacities, levels, self.appearance_camera(camera.to(levels.device)),
+                                      outputs=("rgb", "alpha"))
+            images["level"] = level_out.rgb / level_out.alpha.clamp_min(1e-6)
+            images.setdefault("alpha", level_out.alpha)
+        return images
+
+    def viewer_anchors(self) -> tuple[Tensor, Tensor]:
+        return self.field.anchor_points()
 
     # ----- TrainableModel --------------------------------------------------------------------------
 
