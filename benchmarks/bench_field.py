@@ -1,11 +1,13 @@
 """Time the field's per-view stages (LOD selection, CLCA, decoding) and their share of a training step.
 
-    python benchmarks/bench_field.py [--anchors 200000] [--width 256] [--height 192] [--repeats 3]
+    python benchmarks/bench_field.py [--points 20000] [--width 256] [--height 192] [--threads 1]
 
 A synthetic city-like octree (points on building facades and the ground, cameras on an orbit) is
 built with the default FieldConfig; random features / offsets stand in for a trained model. For one
-view the script prints the median wall time of select, CLCA (forward and backward), decode, and of
-the rasterizer's forward + backward on the decoded Gaussians, and CLCA's share of that step.
+view the script prints the median wall time of select, CLCA (forward + backward), decode (forward +
+backward, CLCA off) and the rasterizer (forward + backward, pure-torch backend) on the decoded
+Gaussians, and each one's share of their sum (a training step without the loss). One thread by
+default: on a shared, oversubscribed machine OpenMP threads spin and make timings meaningless.
 """
 
 from __future__ import annotations
@@ -70,11 +72,14 @@ def timed(fn, repeats: int) -> tuple[float, object]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--points", type=int, default=60_000)
+    parser.add_argument("--points", type=int, default=20_000)
     parser.add_argument("--width", type=int, default=256)
     parser.add_argument("--height", type=int, default=192)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)  # the MLPs' initialisation
     gen = torch.Generator().manual_seed(0)
     cameras = orbit_cameras(24, args.width, args.height)
     start = time.perf_counter()
@@ -96,7 +101,14 @@ def main() -> None:
         return out
 
     t_clca, _ = timed(clca, args.repeats)
-    t_decode, gaussians = timed(lambda: field.decode(camera, ids, context_enabled=False), args.repeats)
+    def decode():
+        gaussians = field.decode(camera, ids, context_enabled=False)
+        (gaussians.means.sum() + gaussians.colors.sum() + gaussians.opacities.sum()
+         + gaussians.scales.sum() + gaussians.quats.sum()).backward()
+        return gaussians
+
+    t_decode, gaussians = timed(decode, args.repeats)
+    gaussians = field.decode(camera, ids, context_enabled=False)
 
     def render():
         out = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
@@ -107,9 +119,10 @@ def main() -> None:
     render()  # the first call compiles the compositor
     t_render, _ = timed(render, args.repeats)
     step = t_select + t_clca + t_decode + t_render
-    print(f"view {args.width}x{args.height}: {len(ids)} visible anchors, {len(gaussians)} Gaussians")
+    print(f"view {args.width}x{args.height}, {args.threads} thread(s): {len(ids)} visible anchors, "
+          f"{len(gaussians)} Gaussians")
     for name, seconds in (("select (LOD + frustum)", t_select), ("CLCA forward+backward", t_clca),
-                          ("decode forward", t_decode), ("rasterize forward+backward", t_render)):
+                          ("decode forward+backward", t_decode), ("rasterize forward+backward", t_render)):
         print(f"  {name:28s} {1000 * seconds:9.1f} ms  {100 * seconds / step:5.1f} %")
 
 
