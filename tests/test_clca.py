@@ -165,3 +165,13 @@ def test_empty_view_and_bad_config():
         ContextConfig(kind="sum").setup(feature_dim=4)
     with pytest.raises(HicoError, match="parent_rule"):
         ContextConfig(parent_rule="ceil").setup(feature_dim=4)
+
+
+@pytest.mark.parametrize("kind", ["mean", "max", "attention"])
+def test_gradcheck_float64(kind):
+    features, levels, positions = random_visible_anchors(3, num=12, dim=4, span=1)
+    module = ContextConfig(kind=kind).setup(feature_dim=4).double()
+    for p in module.parameters():
+        torch.nn.init.normal_(p, std=0.5)
+    features = features.double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda f: module(f, levels, positions.double(), GRID), (features,))

@@ -183,7 +183,8 @@ def test_decoder_outputs_and_opacity_mask():
     assert ((g.colors > 0) & (g.colors < 1)).all()
     torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(len(g)))
     scaling = torch.exp(field.log_scaling.detach())
-    expected_means = field.anchors[g.anchor_ids] + field.offsets[g.anchor_ids, g.child_ids] * scaling[g.anchor_ids, :3]
+    offsets = field.offsets[g.anchor_ids, g.child_ids]
+    expected_means = field.anchors[g.anchor_ids] + offsets * scaling[g.anchor_ids, :3]
     torch.testing.assert_close(g.means, expected_means)
     assert (g.scales <= scaling[g.anchor_ids, 3:] + 1e-6).all()
     # One big chunk gives the same Gaussians as chunks of 50 anchors.

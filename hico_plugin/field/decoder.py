@@ -104,8 +104,8 @@ class GaussianDecoder(nn.Module):
         if not parts:
             parts.append(self._decode(features, positions, offsets, scalings, levels, camera_center,
                                       camera_index, anchor_ids))
-        fields = {name: torch.cat([getattr(p, name) for p in parts]) for name in NeuralGaussians.__dataclass_fields__}
-        return NeuralGaussians(**fields)
+        names = NeuralGaussians.__dataclass_fields__
+        return NeuralGaussians(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
 
     def _decode(self, features, positions, offsets, scalings, levels, camera_center, camera_index,
                 anchor_ids) -> NeuralGaussians:

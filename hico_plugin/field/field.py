@@ -58,7 +58,9 @@ class FieldConfig(InstantiateConfig):
     densify: DensifyConfig = dataclass_field(default_factory=DensifyConfig)
     reference_steps: int = 30_000
     """Step values of the schedules (coarse_steps, densify.*) are written for a run of this many
-    optimizer steps; a run of T steps scales them by T / reference_steps."""
+    optimizer steps (the paper's 30k iterations); a run of T steps scales them by T / reference_steps.
+    CityGS-X counts its schedules in images (batch size per step); here they count optimizer steps,
+    and the statistics thresholds follow the views actually accumulated per step."""
     progressive: bool = True
     """Coarse-to-fine: levels above octree.init_level switch on one by one during training."""
     coarse_steps: int = 10_000
@@ -74,7 +76,8 @@ class FieldConfig(InstantiateConfig):
     """Anchor positions get a learning rate (CityGS-X); False freezes them (Octree-GS, Scaffold-GS)."""
 
     def setup(self, points: Tensor | None = None, train_cameras: Cameras | None = None,
-              num_train_cameras: int | None = None, total_steps: int | None = None, **kwargs) -> "AnchorField":
+              num_train_cameras: int | None = None, total_steps: int | None = None,
+              **kwargs) -> "AnchorField":
         """Build the octree from sparse points [P,3] and the training cameras, then the field.
 
         The field is built on the CPU; move it with ``.to(device)`` like any module. ``total_steps``
@@ -226,7 +229,8 @@ class AnchorField(nn.Module):
         if not self.config.densify.enabled or step > self.densify_stop:
             return
         ids = gaussians.visible_ids
-        self.opacity_accum.index_add_(0, ids, gaussians.raw_opacities.clamp_min(0).sum(1).to(self.opacity_accum))
+        opacity_sums = gaussians.raw_opacities.clamp_min(0).sum(1).to(self.opacity_accum)
+        self.opacity_accum.index_add_(0, ids, opacity_sums)
         self.anchor_denom.index_add_(0, ids, torch.ones_like(ids, dtype=self.anchor_denom.dtype))
         drawn = (radii.reshape(radii.shape[0], -1) > 0).any(1)
         ndc = means2d_grad.detach() * means2d_grad.new_tensor([camera.width / 2, camera.height / 2])
