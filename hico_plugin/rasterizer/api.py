@@ -125,10 +125,12 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, 
         channels.append(proj.depths[..., None])
     features = torch.cat(channels, -1) if channels else means.new_zeros(num_cams, n, 0)
 
-    bins = bin_gaussians(means2d, proj.extents, proj.depths, proj.radii, width, height, tile_size)
+    bins = bin_gaussians(means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii,
+                         width, height, tile_size)
     tiled, tiled_alpha = composite(
         means2d.reshape(-1, 2), proj.conics.reshape(-1, 3),
-        opacities[None].expand(num_cams, -1).reshape(-1), features.reshape(num_cams * n, -1),
+        opacities[None].expand(num_cams, -1).reshape(-1),
+        features.reshape(num_cams * n, features.shape[-1]),
         bins, use_compile=use_compile)
     image = _untile(torch.cat([tiled, tiled_alpha[..., None]], -1), num_cams, bins, width, height)
     maps = dict(zip(["rgb", "normal", "distance", "z"], image[..., :-1].split(

@@ -24,64 +24,89 @@ LOG_T_MIN = math.log(1e-4)  # a Gaussian is drawn only while the transmittance a
 PAIRS_PER_CHUNK = 1 << 22  # ~4M pairs: a few hundred MB of float32 intermediates per chunk
 
 
+def pair_alpha(offset_x: Tensor, offset_y: Tensor, conic: Tensor, opacity: Tensor,
+               pix_x: Tensor, pix_y: Tensor) -> tuple[Tensor, Tensor]:
+    """alpha and log(1 - alpha) of [P,R] pairs; offset_* [R] = tile origin - Gaussian centre,
+    conic [R,3], opacity [R], pix_* [P] pixel centres inside the tile. Element-wise only."""
+    dx = pix_x[:, None] + offset_x[None, :]
+    dy = pix_y[:, None] + offset_y[None, :]
+    sigma = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
+    alpha = torch.clamp_max(opacity * torch.exp(-sigma), ALPHA_MAX)
+    alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+    return alpha, torch.log1p(-alpha)
+
+
+def pair_weight(alpha: Tensor, log_t: Tensor, log_t_after: Tensor) -> Tensor:
+    """Blending weight alpha * T of [P,R] pairs; 0 once T would fall below 1e-4. Element-wise."""
+    drawn = log_t_after > LOG_T_MIN
+    return torch.where(drawn, alpha * torch.exp(log_t_after - log_t), torch.zeros_like(alpha))
+
+
+class _Kernels:
+    """The element-wise pieces, eager or fused by torch.compile (compiled lazily, once)."""
+
+    def __init__(self):
+        self.compiled: tuple[Callable, Callable] | None = None
+        self.failed = False
+
+    def get(self, use_compile: bool) -> tuple[Callable, Callable]:
+        if not use_compile or self.failed or os.environ.get("HICO_NO_COMPILE") == "1":
+            return pair_alpha, pair_weight
+        if self.compiled is None:
+            self.compiled = (torch.compile(pair_alpha, dynamic=True),
+                             torch.compile(pair_weight, dynamic=True))
+        return self.compiled
+
+
+KERNELS = _Kernels()
+
+
 def composite_chunk(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                    gaussian_ids: Tensor, seg_ids: Tensor, seg_starts: Tensor,
-                    pix_x: Tensor, pix_y: Tensor) -> tuple[Tensor, Tensor]:
+                    gaussian_ids: Tensor, seg_ids: Tensor, seg_starts: Tensor, tile_x: Tensor,
+                    tile_y: Tensor, pix_x: Tensor, pix_y: Tensor, use_compile: bool = False
+                    ) -> tuple[Tensor, Tensor]:
     """Composite one chunk of S consecutive tiles holding R intersections.
 
     means2d [G,2], conics [G,3], opacities [G], features [G,D] (G flattened Gaussians);
     gaussian_ids [R]; seg_ids [R] tile of each row within the chunk (non-decreasing);
-    seg_starts [S] first row of each tile; pix_x, pix_y [S,P] pixel-centre coordinates of each tile.
-    Returns features [S,P,D] and alpha [S,P].
+    seg_starts [S] first row of each tile; tile_x, tile_y [S] pixel origin of each tile;
+    pix_x, pix_y [P] pixel-centre offsets inside a tile. Returns features [D,P,S] and alpha [P,S].
+
+    Pairs are laid out [P,R] (pixel-major) so that the cumulative sum and the segment sums run
+    along the contiguous last dimension -- about 10x faster on CPU than along rows.
     """
+    alpha_fn, weight_fn = KERNELS.get(use_compile)
     mean = means2d[gaussian_ids]
-    conic = conics[gaussian_ids]
-    dx = pix_x[seg_ids] - mean[:, 0:1]  # [R,P]
-    dy = pix_y[seg_ids] - mean[:, 1:2]
-    sigma = 0.5 * (conic[:, 0:1] * dx * dx + conic[:, 2:3] * dy * dy) + conic[:, 1:2] * dx * dy
-    alpha = torch.clamp_max(opacities[gaussian_ids][:, None] * torch.exp(-sigma), ALPHA_MAX)
-    alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-    log_t = torch.log1p(-alpha)
+    alpha, log_t = alpha_fn(tile_x[seg_ids] - mean[:, 0], tile_y[seg_ids] - mean[:, 1],
+                            conics[gaussian_ids], opacities[gaussian_ids], pix_x, pix_y)
 
     # Segmented cumsum: subtract the previous tile's total at each tile start, so the running sum
     # restarts near zero per tile (a plain prefix difference would lose float32 precision).
-    num_segs = pix_x.shape[0]
-    totals = log_t.new_zeros(num_segs, log_t.shape[1]).index_add(0, seg_ids, log_t)
-    # Empty tiles share their start row with the next tile and add a zero total; trailing empty
-    # tiles start past the last row and are dropped.
-    inside = (seg_starts[1:] < log_t.shape[0])[:, None]
-    reset = torch.zeros_like(log_t).index_put(
-        (seg_starts[1:].clamp_max(log_t.shape[0] - 1),),
-        torch.where(inside, totals[:-1], torch.zeros_like(totals[:-1])), accumulate=True)
-    log_t_after = torch.cumsum(log_t - reset, 0)  # log T after each Gaussian, within its tile
-    drawn = log_t_after > LOG_T_MIN
-    weight = torch.where(drawn, alpha * torch.exp(log_t_after - log_t), torch.zeros_like(alpha))
+    # Empty tiles share their start with the next tile and add a zero total; trailing empty tiles
+    # start past the last row and are dropped.
+    num_rows, num_segs = log_t.shape[1], seg_starts.shape[0]
+    totals = log_t.new_zeros(log_t.shape[0], num_segs).index_add(1, seg_ids, log_t)
+    inside = seg_starts[1:] < num_rows
+    reset = torch.zeros_like(log_t).index_add(
+        1, seg_starts[1:].clamp_max(num_rows - 1),
+        torch.where(inside, totals[:, :-1], torch.zeros_like(totals[:, :-1])))
+    log_t_after = torch.cumsum(log_t - reset, 1)  # log T after each Gaussian, within its tile
+    weight = weight_fn(alpha, log_t, log_t_after)
 
-    out = features.new_zeros(num_segs, weight.shape[1], features.shape[1])
-    out = out.index_add(0, seg_ids, weight[:, :, None] * features[gaussian_ids][:, None, :])
-    acc = weight.new_zeros(num_segs, weight.shape[1]).index_add(0, seg_ids, weight)
+    feats = features[gaussian_ids].T  # [D,R]
+    out = features.new_zeros(feats.shape[0], weight.shape[0], num_segs)
+    out = out.index_add(2, seg_ids, weight[None] * feats[:, None, :])
+    acc = weight.new_zeros(weight.shape[0], num_segs).index_add(1, seg_ids, weight)
     return out, acc
 
 
-_compiled: dict[str, Callable] = {}
-
-
-def _chunk_fn(use_compile: bool) -> Callable:
-    """composite_chunk, through torch.compile when asked and not disabled by HICO_NO_COMPILE=1."""
-    if not use_compile or os.environ.get("HICO_NO_COMPILE") == "1" or "failed" in _compiled:
-        return composite_chunk
-    if "fn" not in _compiled:
-        _compiled["fn"] = torch.compile(composite_chunk, dynamic=True)
-    return _compiled["fn"]
-
-
 def _run_chunk(use_compile: bool, *args: Tensor) -> tuple[Tensor, Tensor]:
-    if use_compile:
+    if use_compile and not KERNELS.failed:
         try:
-            return _chunk_fn(True)(*args)
+            return composite_chunk(*args, use_compile=True)
         except Exception as err:  # noqa: BLE001 - any compiler failure falls back to eager
             warnings.warn(f"torch.compile of the compositor failed, using eager mode: {err}")
-            _compiled["failed"] = _compiled.pop("fn", None)
+            KERNELS.failed = True
     return composite_chunk(*args)
 
 
@@ -100,20 +125,19 @@ def _chunks(bins: TileBins, pairs_per_chunk: int) -> list[tuple[int, int]]:
     return bounds
 
 
-def _chunk_inputs(bins: TileBins, start: int, end: int, dtype: torch.dtype
-                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """gaussian_ids, seg_ids, seg_starts, pix_x, pix_y of tiles [start, end)."""
+def _chunk_inputs(bins: TileBins, start: int, end: int, dtype: torch.dtype) -> tuple[Tensor, ...]:
+    """gaussian_ids, seg_ids, seg_starts, tile_x, tile_y, pix_x, pix_y of tiles [start, end)."""
     ts = bins.tile_size
     offsets = bins.tile_offsets[start:end + 1]
     rows = slice(int(offsets[0]), int(offsets[-1]))
-    tiles = torch.arange(start, end, device=offsets.device)
-    in_cam = tiles % (bins.tiles_x * bins.tiles_y)
+    in_cam = torch.arange(start, end, device=offsets.device) % (bins.tiles_x * bins.tiles_y)
     local = torch.arange(ts * ts, device=offsets.device)
-    pix_x = ((in_cam % bins.tiles_x) * ts)[:, None] + (local % ts)[None, :] + 0.5
-    pix_y = (torch.div(in_cam, bins.tiles_x, rounding_mode="floor") * ts)[:, None] \
-        + torch.div(local, ts, rounding_mode="floor")[None, :] + 0.5
+    tile_x = (in_cam % bins.tiles_x) * ts
+    tile_y = torch.div(in_cam, bins.tiles_x, rounding_mode="floor") * ts
+    pix_x = local % ts + 0.5
+    pix_y = torch.div(local, ts, rounding_mode="floor") + 0.5
     return (bins.gaussian_ids[rows], bins.tile_ids[rows] - start, offsets[:-1] - offsets[0],
-            pix_x.to(dtype), pix_y.to(dtype))
+            tile_x.to(dtype), tile_y.to(dtype), pix_x.to(dtype), pix_y.to(dtype))
 
 
 class _Composite(torch.autograd.Function):
@@ -127,8 +151,10 @@ class _Composite(torch.autograd.Function):
                   if bins.tile_offsets[c[1]] > bins.tile_offsets[c[0]]]
         for start, end in chunks:
             args = _chunk_inputs(bins, start, end, means2d.dtype)
-            out[start:end], acc[start:end] = _run_chunk(
-                use_compile, means2d, conics, opacities, features, *args)
+            chunk_out, chunk_acc = _run_chunk(use_compile, means2d, conics, opacities, features,
+                                              *args)
+            out[start:end] = chunk_out.permute(2, 1, 0)
+            acc[start:end] = chunk_acc.T
         ctx.save_for_backward(means2d, conics, opacities, features)
         ctx.bins, ctx.chunks, ctx.use_compile = bins, chunks, use_compile
         return out, acc
@@ -142,7 +168,8 @@ class _Composite(torch.autograd.Function):
             with torch.enable_grad():
                 out, acc = _run_chunk(ctx.use_compile, *inputs, *args)
                 chunk_grads = torch.autograd.grad(
-                    (out, acc), inputs, (grad_out[start:end], grad_acc[start:end]),
+                    (out, acc), inputs,
+                    (grad_out[start:end].permute(2, 1, 0), grad_acc[start:end].T),
                     allow_unused=True)
             for total, g in zip(grads, chunk_grads):
                 if g is not None:

@@ -20,6 +20,7 @@ class Projection:
     means2d: Tensor  # [C,N,2] projected centres in pixels (pixel centres at +0.5)
     conics: Tensor  # [C,N,3] inverse 2-D covariance (a, b, c) of [[a, b], [b, c]]
     depths: Tensor  # [C,N] camera z
+    reach: Tensor  # [N] Mahalanobis radius where alpha falls to 1/255 (0 below that opacity)
     extents: Tensor  # [C,N,2] half-width / half-height in px of the drawn ellipse's bounding box
     radii: Tensor  # [C,N] int32 ceil(max extent); 0 = culled
 
@@ -112,5 +113,5 @@ def project_gaussians(
         extents = torch.where(visible[..., None], extents, torch.zeros_like(extents))
         radii = torch.ceil(extents.amax(-1).clamp_max(2.0**30)).to(torch.int32)
         radii = torch.where(visible, radii.clamp_min(1), torch.zeros_like(radii))
-    return Projection(means_cam, means2d, conics, z, extents, radii)
+    return Projection(means_cam, means2d, conics, z, reach, extents, radii)
 

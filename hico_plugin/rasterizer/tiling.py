@@ -24,12 +24,14 @@ class TileBins:
     tile_size: int
 
 
-def bin_gaussians(means2d: Tensor, extents: Tensor, depths: Tensor, radii: Tensor,
-                  width: int, height: int, tile_size: int) -> TileBins:
-    """means2d [C,N,2], extents [C,N,2] (bbox half-sizes, px), depths [C,N], radii [C,N] (0 = culled).
+def bin_gaussians(means2d: Tensor, conics: Tensor, reach: Tensor, extents: Tensor,
+                  depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int) -> TileBins:
+    """means2d [C,N,2], conics [C,N,3], reach [N] (Mahalanobis radius of the 1/255 cut),
+    extents [C,N,2] (bbox half-sizes, px), depths [C,N], radii [C,N] (0 = culled).
 
-    Vectorised: each Gaussian's tile rectangle is enumerated with repeat_interleave, and a stable
-    sort of depth-ordered intersections by tile gives the per-tile depth order.
+    Vectorised: each Gaussian's tile rectangle is enumerated with repeat_interleave, tiles its
+    ellipse misses are dropped, and a stable sort of depth-ordered intersections by tile gives the
+    per-tile depth order.
     """
     num_cams, n = depths.shape
     tiles_x = -(-width // tile_size)
@@ -62,6 +64,10 @@ def bin_gaussians(means2d: Tensor, extents: Tensor, depths: Tensor, radii: Tenso
         span = span_x[gaussian_ids]
         tx = tx0[gaussian_ids] + local % span
         ty = ty0[gaussian_ids] + torch.div(local, span, rounding_mode="floor")
+        hit = _ellipse_meets_tile(means2d.detach().reshape(-1, 2)[gaussian_ids],
+                                  conics.detach().reshape(-1, 3)[gaussian_ids],
+                                  reach.repeat(num_cams)[gaussian_ids], tx, ty, tile_size)
+        gaussian_ids, tx, ty = gaussian_ids[hit], tx[hit], ty[hit]
         cam = torch.div(gaussian_ids, n, rounding_mode="floor")
         tile_ids = (cam * tiles_y + ty) * tiles_x + tx
         tile_ids, perm = torch.sort(tile_ids, stable=True)
@@ -70,3 +76,29 @@ def bin_gaussians(means2d: Tensor, extents: Tensor, depths: Tensor, radii: Tenso
         tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int64, device=device)
         tile_offsets[1:] = torch.cumsum(torch.bincount(tile_ids, minlength=num_tiles), 0)
     return TileBins(gaussian_ids, tile_ids, tile_offsets, tiles_x, tiles_y, tile_size)
+
+
+def _ellipse_meets_tile(mean: Tensor, conic: Tensor, reach: Tensor, tx: Tensor, ty: Tensor,
+                        tile_size: int) -> Tensor:
+    """Whether the ellipse (x-m)^T conic (x-m) <= reach^2 reaches the pixel centres of tile (tx,ty).
+
+    mean [I,2], conic [I,3], reach [I], tx/ty [I]. The quadratic's minimum over the rectangle of
+    pixel centres is 0 with the centre inside, else it lies on an edge: on each edge the 1-D
+    minimiser is clamped to the edge's span.
+    """
+    a, b, c = conic.unbind(-1)
+    x0 = tx * tile_size + 0.5 - mean[:, 0]
+    x1 = x0 + (tile_size - 1)
+    y0 = ty * tile_size + 0.5 - mean[:, 1]
+    y1 = y0 + (tile_size - 1)
+    inside = (x0 <= 0) & (x1 >= 0) & (y0 <= 0) & (y1 >= 0)
+
+    def quad(dx, dy):
+        return a * dx * dx + 2 * b * dx * dy + c * dy * dy
+
+    best = torch.full_like(a, float("inf"))
+    for x in (x0, x1):  # vertical edges: minimise over y at fixed x
+        best = torch.minimum(best, quad(x, torch.minimum(torch.maximum(-b * x / c, y0), y1)))
+    for y in (y0, y1):  # horizontal edges
+        best = torch.minimum(best, quad(torch.minimum(torch.maximum(-b * y / a, x0), x1), y))
+    return inside | (best <= reach * reach)
