@@ -74,6 +74,9 @@ class SceneConfig(InstantiateConfig):
     """Sparse point position noise, as a fraction of the distance to the observing camera."""
     surface_spacing: float = 0.1
     """Spacing (metres) of the dense ground-truth surface samples."""
+    sfm: bool = False
+    """Replace the known poses and sampled points by real SfM (pycolmap SIFT + matching + incremental
+    mapping) on the rendered images, aligned to the ground-truth frame. Slow: minutes on CPU."""
     effects: SceneEffects = field(default_factory=SceneEffects)
     """Effects this scene declares; each can be switched off."""
 

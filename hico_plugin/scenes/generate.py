@@ -30,6 +30,7 @@ from hico_plugin.errors import HicoError
 from hico_plugin.scenes import effects as fx
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
 from hico_plugin.scenes.render import render_view
+from hico_plugin.scenes.sfm import run_sfm
 from hico_plugin.scenes.sparse import SparsePoints, feature_points
 
 GENERATOR_VERSION = 1  # bump when output for the same parameters changes, to invalidate caches
@@ -181,6 +182,10 @@ def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
     reconstruction = build_reconstruction(scene, sparse)
     reconstruction.write_binary(str(out / "sparse" / "0"))
     t_sparse = time.perf_counter() - t_sparse
+    sfm_stats, t_sfm = None, time.perf_counter()
+    if config.sfm:
+        sfm_stats = run_sfm(out, reconstruction, scene.K, config.seed)
+    t_sfm = time.perf_counter() - t_sfm
 
     hit_depths = depths[depths > 0]
     meta = {
@@ -196,9 +201,13 @@ def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
         "camera": {"model": "PINHOLE", "params": [scene.K[0, 0], scene.K[1, 1], scene.K[0, 2], scene.K[1, 2]]},
         "sun_direction": scene.sun.tolist(),
         "num_primitives": len(scene.primitives),
-        "num_points3D": reconstruction.num_points3D(),
+        "poses": "sfm" if config.sfm else "known",
+        "sfm": sfm_stats,
+        "num_points3D": sfm_stats["num_points3D"] if sfm_stats else reconstruction.num_points3D(),
         "mean_track_length": reconstruction.compute_mean_track_length(),
-        "mean_reprojection_error_px": reconstruction.compute_mean_reprojection_error(),
+        "mean_reprojection_error_px": (
+            sfm_stats["mean_reprojection_error_px"] if sfm_stats else reconstruction.compute_mean_reprojection_error()
+        ),
         "num_surface_points": len(surface),
         "depth_range": [float(hit_depths.min()), float(hit_depths.max())] if hit_depths.size else [0.0, 0.0],
         "camera_distance_range": _camera_distance_range(scene),
@@ -206,6 +215,7 @@ def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
         "timings_s": {
             "render": round(t_render, 3),
             "sparse": round(t_sparse, 3),
+            "sfm": round(t_sfm, 3),
             "total": round(time.perf_counter() - t_start, 3),
         },
     }
