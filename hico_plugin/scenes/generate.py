@@ -247,9 +247,7 @@ def build_reconstruction(scene: Scene, sparse: SparsePoints) -> pycolmap.Reconst
     )
     reconstruction.add_camera_with_trivial_rig(camera)
     # observations sorted by image: their rank within an image is their point2D index
-    obs_image = np.concatenate(sparse.track_images)
-    obs_point = np.repeat(np.arange(len(sparse.track_images)), [len(t) for t in sparse.track_images])
-    obs_pixel = np.concatenate(sparse.track_pixels)
+    obs_image, obs_pixel = sparse.obs_image, sparse.obs_pixel
     order = np.argsort(obs_image, kind="stable")
     counts = np.bincount(obs_image, minlength=len(scene.viewmats))
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -259,7 +257,7 @@ def build_reconstruction(scene: Scene, sparse: SparsePoints) -> pycolmap.Reconst
         keypoints = obs_pixel[order[starts[i]: starts[i] + counts[i]]].astype(np.float64)
         image = pycolmap.Image(name=image_name(i), keypoints=keypoints.reshape(-1, 2), camera_id=1, image_id=i + 1)
         reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(viewmat[:3, :4]))
-    track_bounds = np.concatenate([[0], np.cumsum([len(t) for t in sparse.track_images])])
+    track_bounds = np.searchsorted(sparse.obs_point, np.arange(len(sparse.xyz) + 1))
     for p in range(len(sparse.xyz)):  # pycolmap takes points one at a time
         lo, hi = track_bounds[p], track_bounds[p + 1]
         track = pycolmap.Track(

@@ -14,9 +14,11 @@ class SparsePoints:
 
     xyz: np.ndarray  # [N, 3] float64 world (with position noise)
     rgb: np.ndarray  # [N, 3] uint8, sampled from the source image
-    track_images: list[np.ndarray]  # per point: indices of the views observing it
-    track_pixels: list[np.ndarray]  # per point: [T, 2] observed pixel positions (COLMAP: centre of
-    # the top-left pixel at (0.5, 0.5)), with keypoint noise
+    # observations, grouped by point (the proposing view first within each point):
+    obs_point: np.ndarray  # [M] point index
+    obs_image: np.ndarray  # [M] view index
+    obs_pixel: np.ndarray  # [M, 2] observed pixel (COLMAP: top-left pixel centre at (0.5, 0.5)),
+    # with keypoint noise
 
 
 def backproject(depth: np.ndarray, viewmat: np.ndarray, K: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -96,16 +98,15 @@ def feature_points(
 
     distance = np.linalg.norm(true_xyz - _centers(viewmats)[source], axis=1)
     xyz = true_xyz + rng.normal(0.0, 1.0, true_xyz.shape) * (position_noise * distance)[:, None]
-    track_images, track_pixels = [], []
     priority = rng.random(seen.shape) + 2.0 * (np.arange(C)[:, None] == source[None])  # source first
     priority = np.where(seen, priority, -1.0)
-    ranked = np.argsort(-priority, axis=0)[:max_track]  # [T, N]
-    for point in range(len(keep)):  # building per-point track lists for the COLMAP writer
-        views = ranked[:, point]
-        views = views[seen[views, point]]
-        track_images.append(views)
-        track_pixels.append(uv[views, point] + rng.normal(0.0, 0.5, (len(views), 2)))
-    return SparsePoints(xyz=xyz, rgb=pixel_rgb.astype(np.uint8), track_images=track_images, track_pixels=track_pixels)
+    ranked = np.argsort(-priority, axis=0)[:max_track].T  # [N, T] best views per point
+    point = np.broadcast_to(np.arange(len(keep))[:, None], ranked.shape)
+    observed = seen[ranked, point]  # [N, T]; a point seen by fewer than T views has padding
+    obs_point, obs_image = point[observed], ranked[observed]
+    obs_pixel = uv[obs_image, obs_point] + rng.normal(0.0, 0.5, (len(obs_point), 2))
+    return SparsePoints(xyz=xyz, rgb=pixel_rgb.astype(np.uint8), obs_point=obs_point, obs_image=obs_image,
+                        obs_pixel=obs_pixel)
 
 
 def _centers(viewmats: np.ndarray) -> np.ndarray:
