@@ -54,7 +54,9 @@ def test_demo_serves_and_stops_on_ctrl_c():
         with socket.create_connection(("127.0.0.1", port), timeout=5):
             pass
         process.send_signal(signal.SIGINT)
-        assert process.wait(timeout=60) == 0
+        returncode = process.wait(timeout=60)
+        time.sleep(0.2)  # let the reader collect the last lines
+        assert returncode == 0, "".join(lines)
     finally:
         if process.poll() is None:
             process.kill()

@@ -140,10 +140,14 @@ class Viewer:
         self.port = self.server.get_port()
         shown_host = "localhost" if config.host in ("127.0.0.1", "localhost", "::1") else config.host
         self.url = f"http://{shown_host}:{self.port}"
-        self._training_cameras = state.training_cameras(config.max_cameras)
-        self._scene_extent = self._camera_spread(self._training_cameras)
-        self._build_gui()
-        self._build_scene()
+        try:
+            self._training_cameras = state.training_cameras(config.max_cameras)
+            self._scene_extent = self._camera_spread(self._training_cameras)
+            self._build_gui()
+            self._build_scene()
+        except BaseException:
+            self.server.stop()  # do not leave a half-built server holding the port
+            raise
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self._on_disconnect)
         self._thumbnail_thread = threading.Thread(target=self._load_thumbnails, name="hico-viewer-thumbnails", daemon=True)
