@@ -50,6 +50,10 @@ def main(argv: list[str] | None = None) -> Path:
           f"reprojection {meta['mean_reprojection_error_px']:.2f} px); surface samples {meta['num_surface_points']}")
     print(f"effects    declared: {', '.join(meta['declared_effects']) or '(none)'}; "
           f"enabled: {', '.join(meta['enabled_effects']) or '(none)'}")
+    if meta.get("sfm"):
+        sfm = meta["sfm"]
+        print(f"sfm        {sfm['registered_images']}/{meta['num_views']} images registered, camera centre error "
+              f"mean {sfm['camera_center_error_mean']:.3g} max {sfm['camera_center_error_max']:.3g} (scene units)")
     print(f"size       {_dir_size(path) / 1e6:.1f} MB")
     timings = meta["timings_s"]
     print(f"time       generation {timings['total']:.2f} s (render {timings['render']:.2f} s, sparse "

@@ -204,7 +204,9 @@ def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
         "poses": "sfm" if config.sfm else "known",
         "sfm": sfm_stats,
         "num_points3D": sfm_stats["num_points3D"] if sfm_stats else reconstruction.num_points3D(),
-        "mean_track_length": reconstruction.compute_mean_track_length(),
+        "mean_track_length": (
+            sfm_stats["mean_track_length"] if sfm_stats else reconstruction.compute_mean_track_length()
+        ),
         "mean_reprojection_error_px": (
             sfm_stats["mean_reprojection_error_px"] if sfm_stats else reconstruction.compute_mean_reprojection_error()
         ),

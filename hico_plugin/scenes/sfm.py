@@ -69,6 +69,7 @@ def run_sfm(dataset: Path, reference: pycolmap.Reconstruction, K: np.ndarray, se
     return {
         "registered_images": model.num_reg_images(),
         "num_points3D": model.num_points3D(),
+        "mean_track_length": model.compute_mean_track_length(),
         "mean_reprojection_error_px": model.compute_mean_reprojection_error(),
         "camera_center_error_mean": float(np.mean(errors)),
         "camera_center_error_max": float(np.max(errors)),
