@@ -1,5 +1,6 @@
 """Anchor field: octree invariants, selection, decoder, growing / pruning, state round trips."""
 
+import copy
 import math
 
 import numpy as np
@@ -343,3 +344,43 @@ def test_training_loop_with_the_rasterizer_grows_and_stays_finite():
     assert all(math.isfinite(v) for v in losses)
     assert grown > 0 and field.offset_grad_accum.shape[0] == field.num_anchors
     assert all(torch.isfinite(p).all() for ps in field.param_groups().values() for p in ps)
+
+
+def test_sync_stats_sums_only_new_increments_over_workers():
+    """Two workers with identical fields see different views; after sync both hold the stats a
+    single worker seeing every view would hold, also across an adjustment that keeps some stats."""
+    def worker():
+        field = grow_prune_case()
+        with torch.no_grad():
+            field.offset_grad_accum[0, 4] = 1e-9  # an offset below the count threshold: carried over
+            field.offset_denom[0, 4] = 1.0
+        field.sync_stats(lambda increment: None)  # one worker alone: the preset stats are shared
+        return field
+
+    first = worker()
+    workers, single = [first, copy.deepcopy(first)], copy.deepcopy(first)  # same MLP weights
+    camera = camera_at((4.0, 4.0 - 2.5, 4.0), (4.0, 4.0, 4.0))
+
+    def observe(field, seed, step):
+        torch.manual_seed(seed)
+        g = field.decode(camera, field.select(camera, step))
+        field.accumulate_stats(g, torch.randn(len(g), 2), torch.ones(len(g)), camera, step)
+
+    for step, seeds in ((590, (1, 2)), (700, (3, 4))):
+        for field, seed in zip(workers, seeds):
+            observe(field, seed, step)
+        for seed in seeds:
+            observe(single, seed, step)
+        increments = [{name: getattr(f, name) - getattr(f, f"{name}_synced") for name in
+                       ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom", "stat_views")}
+                      for f in workers]
+        for me, other in ((0, 1), (1, 0)):  # a fake all-reduce: add the other worker's increment
+            pending = iter(list(increments[other].values()))
+            workers[me].sync_stats(lambda t: t.add_(next(pending)))
+        for name in ("opacity_accum", "offset_grad_accum", "offset_denom", "stat_views"):
+            for field in workers:
+                torch.testing.assert_close(getattr(field, name), getattr(single, name), msg=name)
+        if step == 590:
+            for field in (*workers, single):
+                field.densify(600)
+            assert workers[0].num_anchors == single.num_anchors

@@ -10,6 +10,8 @@ Use from the model, per view::
 
 and once per step after the optimizer update::
 
+    if field.is_densify_step(step):
+        field.sync_stats(all_reduce_sum_)              # multi-process only
     for group, (kept_rows, num_new) in field.densify(step).items():
         optimizers.resize_group(group, field.param_groups()[group], kept_rows, num_new)
 
@@ -23,7 +25,7 @@ the last adjustment (grown per level, pruned) are in ``field.last_densify``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field as dataclass_field
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from torch import Tensor, nn
@@ -41,9 +43,12 @@ from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree
 # Parameter groups whose rows are anchors (resized by densification), and the attribute holding each.
 ANCHOR_GROUPS = {"anchor": "anchors", "offset": "offsets", "anchor_feat": "anchor_features",
                  "scaling": "log_scaling"}
+# Densification statistics; each has a ``<name>_synced`` twin holding its value at the last sync.
+STAT_BUFFERS = ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom", "stat_views")
 # Per-anchor buffers, resized together with the anchor parameters.
 ANCHOR_BUFFERS = ("levels", "extra_level", "opacity_accum", "anchor_denom", "offset_grad_accum",
-                  "offset_denom")
+                  "offset_denom", "opacity_accum_synced", "anchor_denom_synced",
+                  "offset_grad_accum_synced", "offset_denom_synced")
 
 
 @dataclass
@@ -124,6 +129,8 @@ class AnchorField(nn.Module):
         self.register_buffer("train_camera_centers", camera_centers.float().clone())
         self.register_buffer("stat_views", torch.zeros((), dtype=torch.long))
         self.register_buffer("last_adjust_step", torch.zeros((), dtype=torch.long))
+        for name in STAT_BUFFERS:
+            self.register_buffer(f"{name}_synced", getattr(self, name).clone())
         self.context = config.context.setup(feature_dim=d)
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
         self.set_total_steps(total_steps)
@@ -240,6 +247,22 @@ class AnchorField(nn.Module):
         self.offset_denom.view(-1).index_add_(0, offset_rows, torch.ones_like(grad_norm))
         self.stat_views += 1
 
+    @torch.no_grad()
+    def sync_stats(self, all_reduce_sum: Callable[[Tensor], Any]) -> None:
+        """Sum the statistics gathered since the last sync over all workers (multi-process training).
+
+        Call on every worker, before ``densify``, with an in-place sum over workers (e.g.
+        ``engine.distributed.all_reduce_sum_``). Only the increments since the last sync are reduced:
+        reducing the whole accumulators would count the part carried over from earlier intervals
+        (identical on every worker) once per worker.
+        """
+        for name in STAT_BUFFERS:
+            total, synced = getattr(self, name), getattr(self, f"{name}_synced")
+            increment = total - synced
+            all_reduce_sum(increment)
+            total.copy_(synced + increment)
+            synced.copy_(total)
+
     def is_densify_step(self, step: int) -> bool:
         return (self.config.densify.enabled and self.densify_start < step <= self.densify_stop
                 and step % self.densify_interval == 0)
@@ -277,12 +300,19 @@ class AnchorField(nn.Module):
         for level in range(self.grid.num_levels):
             self.last_densify[f"grown_level_{level}"] = int((grown.levels == level).sum())
         if num_new == 0 and not prune.any():
+            self._mark_synced()
             return {}
         kept_rows = (~prune).nonzero().squeeze(1)
         self._resize(kept_rows, grown)
+        self._mark_synced()
         if prune.any():
             self.log_scaling[:, 3:].clamp_(max=cfg.max_log_scale)
         return {name: (kept_rows, num_new) for name in ANCHOR_GROUPS}
+
+    def _mark_synced(self) -> None:
+        """After an adjustment every worker holds the same statistics: the next sync starts here."""
+        for name in STAT_BUFFERS:
+            getattr(self, f"{name}_synced").copy_(getattr(self, name))
 
     def _resize(self, kept_rows: Tensor, grown) -> None:
         """Swap every per-anchor parameter / buffer for ``cat([old[kept_rows], new rows])``."""
