@@ -122,19 +122,22 @@ class GaussianDecoder(nn.Module):
         opacity = torch.tanh(self.mlp_opacity(inputs))  # [V,K]
         keep = opacity > 0
         anchor_rows, child_ids = keep.nonzero(as_tuple=True)
+        child_rows = anchor_rows * k + child_ids  # rows of the [V*K, ...] per-child outputs
 
         color_in = inputs
         if self.appearance is not None:
             code = self.appearance_code(camera_index, inputs)
             color_in = torch.cat([inputs, code.expand(inputs.shape[0], -1)], dim=1)
-        # Only the kept children are needed downstream: evaluate the MLPs per anchor, then gather.
-        colors = torch.sigmoid(self.mlp_color(color_in)).view(-1, k, 3)[anchor_rows, child_ids]
-        cov = self.mlp_cov(inputs).view(-1, k, 7)[anchor_rows, child_ids]
-        anchor_scale = scalings[anchor_rows]
+        # Only the kept children are needed downstream: evaluate the MLPs per anchor, then gather
+        # (index_select: its backward is a plain index_add).
+        colors = torch.sigmoid(self.mlp_color(color_in)).view(-1, 3).index_select(0, child_rows)
+        cov = self.mlp_cov(inputs).view(-1, 7).index_select(0, child_rows)
+        anchor_scale = scalings.index_select(0, anchor_rows)
         scales = anchor_scale[:, 3:6] * torch.sigmoid(cov[:, :3])
         quats = F.normalize(cov[:, 3:7], dim=-1)
-        means = positions[anchor_rows] + offsets[anchor_rows, child_ids] * anchor_scale[:, :3]
+        means = (positions.index_select(0, anchor_rows)
+                 + offsets.reshape(-1, 3).index_select(0, child_rows) * anchor_scale[:, :3])
         return NeuralGaussians(
-            means=means, quats=quats, scales=scales, opacities=opacity[anchor_rows, child_ids],
+            means=means, quats=quats, scales=scales, opacities=opacity.view(-1).index_select(0, child_rows),
             colors=colors, anchor_ids=anchor_ids[anchor_rows], child_ids=child_ids,
             visible_ids=anchor_ids, raw_opacities=opacity.detach(), keep_mask=keep)

@@ -103,7 +103,8 @@ class AnchorField(nn.Module):
 
     Parameters: anchors [N,3] (positions p), offsets [N,K,3] (delta), anchor_features [N,d] (f),
     log_scaling [N,6] (log s; s[:3] scales the offsets, s[3:] bounds the children's scales).
-    Buffers: levels [N] long, extra_level [N] (eps, changed by densification only), the statistics
+    Buffers: levels [N] long, extra_level [N] (the paper's "learnable" eps; as in the base code it
+    is adjusted by the densification rule, not by gradients), the statistics
     (opacity_accum [N], anchor_denom [N], offset_grad_accum [N,K], offset_denom [N,K]), the training
     camera centres [C,3] (weed-out of new anchors) and the schedule counters. The octree grid
     (``OctreeGrid``) is saved in the state dict as extra state. The base method's per-anchor rotation
@@ -181,13 +182,14 @@ class AnchorField(nn.Module):
 
     def decode(self, camera: Camera, visible_ids: Tensor, context_enabled: bool = True) -> NeuralGaussians:
         """Neural Gaussians of the visible anchors; CLCA enhances their features unless disabled."""
-        features = self.anchor_features[visible_ids]
-        positions = self.anchors[visible_ids]
-        levels = self.levels[visible_ids]
+        # index_select rather than [ids]: its backward is a plain index_add (much cheaper on CPU).
+        features = self.anchor_features.index_select(0, visible_ids)
+        positions = self.anchors.index_select(0, visible_ids)
+        levels = self.levels.index_select(0, visible_ids)
         if context_enabled:
             features = self.context(features, levels, positions, self.grid)
-        return self.decoder(features, positions, self.offsets[visible_ids],
-                            torch.exp(self.log_scaling[visible_ids]), levels,
+        return self.decoder(features, positions, self.offsets.index_select(0, visible_ids),
+                            torch.exp(self.log_scaling.index_select(0, visible_ids)), levels,
                             camera.center.to(positions), camera.index, visible_ids)
 
     # ----- optimisation -----------------------------------------------------------------------------
