@@ -2,7 +2,9 @@
 
 Independent of the Gaussian rasterizer on purpose: the built-in scenes are the ground truth the
 rasterizer is measured against. Everything is numpy float64, vectorised over rays; the only Python
-loop is over scene primitives (tens), each tested against just the rays its bounding sphere admits.
+loop is over scene primitives (tens), each tested only against the rays that can reach it: camera
+rays inside the pixel rectangle of its projected hull, shadow rays inside its silhouette rectangle
+seen from the sun.
 
 Shapes: ``origins``/``dirs``: [R, 3] (dirs unit length), ``t``: [R] (``inf`` = miss).
 """

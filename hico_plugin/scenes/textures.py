@@ -51,10 +51,6 @@ def fbm(coords: np.ndarray, frequency: float, octaves: int = 2) -> np.ndarray:
     return total / norm
 
 
-def _mix(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
-    return a + (b - a) * w[:, None]
-
-
 def _tint(color: np.ndarray, n: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(color, np.float64), (n, 3)).copy()
 
