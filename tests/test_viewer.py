@@ -30,6 +30,7 @@ from hico_plugin.viewer import (
 )
 from hico_plugin.viewer.demo import DemoDataset, DemoModel, depth_to_normal
 from hico_plugin.viewer.state import evenly_spaced, make_thumbnail
+from hico_plugin.viewer.throttle import refresh_interval
 from hico_plugin.viewer.stats_panel import format_stats_markdown, plot_series
 
 
@@ -59,6 +60,21 @@ def test_plan_render_preview_while_moving_then_one_full_render():
     assert plan_render(10.0, 9.5, 3, 3, True, settle) is None  # full shown: nothing to do
     assert plan_render(10.0, 9.5, 4, 3, True, settle) == "full"  # change long ago (model update)
     assert plan_render(10.0, -math.inf, 4, 3, True, settle) == "full"
+
+
+def test_plan_render_refreshes_for_training_progress_at_preview_size():
+    settle = 0.25
+    assert plan_render(10.0, 9.0, 3, 3, True, settle, model_changed=True) == "refresh"
+    assert plan_render(10.0, 9.9, 4, 3, True, settle, model_changed=True) == "preview"  # the user comes first
+    assert plan_render(10.0, 9.0, 3, 3, False, settle, model_changed=True) == "full"
+
+
+def test_refresh_interval_bounds_the_renders_share_of_training_time():
+    assert refresh_interval(2.0, 1.0, 0.2) == pytest.approx(8.0)
+    assert refresh_interval(0.05, 1.0, 0.2) == 1.0
+    assert refresh_interval(1.0, 0.0, 1.0) == 0.0
+    with pytest.raises(ValueError):
+        refresh_interval(1.0, 1.0, 0.0)
 
 
 def test_render_size_keeps_aspect_and_longest_side():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-RenderKind = Literal["preview", "full"]
+RenderKind = Literal["preview", "full", "refresh"]
 
 
 def next_resolution(last_render_seconds: float, target_seconds: float, current: int, minimum: int, maximum: int) -> int:
@@ -32,18 +32,31 @@ def plan_render(
     rendered_version: int,
     rendered_full: bool,
     settle_seconds: float,
+    model_changed: bool = False,
 ) -> RenderKind | None:
     """What a client's view needs now.
 
-    ``version`` counts changes of what the client should see (camera moved, option changed, model
-    updated); ``rendered_version`` is the version of the picture on screen and ``rendered_full`` whether
-    that picture was a full-resolution one. While changes keep coming (the camera is moving, less than
-    ``settle_seconds`` since the last one) the view gets fast low-resolution previews; once it settles it
-    gets one full-resolution render, then nothing until the next change.
+    ``version`` counts changes the user made (camera moved, option changed); ``rendered_version`` is
+    the version of the picture on screen and ``rendered_full`` whether that picture was a
+    full-resolution one. While changes keep coming (less than ``settle_seconds`` since the last one)
+    the view gets fast low-resolution previews; once it settles it gets one full-resolution render.
+    ``model_changed`` (training moved on since the picture was made) asks for a "refresh": a render at
+    the fast preview size that keeps training's share of the CPU, rather than a slow full one.
     """
     settled = now - last_change_time >= settle_seconds
     if version != rendered_version:
         return "full" if settled else "preview"
     if not rendered_full and settled:
         return "full"
+    if model_changed:
+        return "refresh"
     return None
+
+
+def refresh_interval(last_render_seconds: float, minimum_seconds: float, render_share: float) -> float:
+    """Seconds between training-progress refreshes, so that renders take at most ``render_share`` of
+    the wall time (a 2 s render at share 0.2 refreshes every 8 s), and never more often than
+    ``minimum_seconds``."""
+    if not 0.0 < render_share <= 1.0:
+        raise ValueError(f"refresh_interval: render_share must be in (0, 1], got {render_share}")
+    return max(minimum_seconds, last_render_seconds * (1.0 - render_share) / render_share)

@@ -33,7 +33,7 @@ from hico_plugin.viewer.state import (
     model_render_fn,
 )
 from hico_plugin.viewer.stats_panel import format_stats_markdown, plot_series
-from hico_plugin.viewer.throttle import RenderKind, next_resolution, plan_render
+from hico_plugin.viewer.throttle import RenderKind, next_resolution, plan_render, refresh_interval
 from hico_plugin.viewer.visualize import level_colors
 
 logger = logging.getLogger(__name__)
@@ -56,7 +56,9 @@ class ViewerConfig(InstantiateConfig):
     settle_seconds: float = 0.25
     """Time without camera / option changes after which the view is rendered at full resolution."""
     refresh_seconds: float = 1.0
-    """While training: how often the view, stats and plot are refreshed."""
+    """While training: how often the stats and plot are refreshed (and at most how often the view is)."""
+    training_render_share: float = 0.2
+    """While training: the largest share of wall time spent re-rendering the view as the model changes."""
     anchor_refresh_seconds: float = 5.0
     """While training: how often the anchor cloud is re-read from the model."""
     max_cameras: int = 100
@@ -87,6 +89,7 @@ class _ClientView:
     version: int = 1
     rendered_version: int = 0
     rendered_full: bool = False
+    rendered_step: int = -1
     last_change_time: float = field(default_factory=time.monotonic)
     notified_errors: set[str] = field(default_factory=set)
 
@@ -132,6 +135,8 @@ class Viewer:
         self._plot_names: tuple[str, ...] = ()
         self._plot: Any = None
         self._next_round_robin = 0
+        self._last_model_refresh = -math.inf  # when the view was last re-rendered for training progress
+        self._model_refresh_seconds = 0.0  # and how long that render took
 
         try:
             self.server = viser.ViserServer(host=config.host, port=config.port, label="hico_plugin", verbose=False)
@@ -214,7 +219,7 @@ class Viewer:
 
         for handle in (self._output, self._colormap, self._max_resolution, self._lod_override, self._level_range,
                        self._distance_scale, self._clca):
-            handle.on_update(lambda _: self._invalidate_views(settled=False))
+            handle.on_update(lambda _: self._invalidate_views())
         self._show_cameras.on_update(lambda _: self._set_cameras_visible())
         for handle in (self._show_anchors, self._anchor_level_filter):
             handle.on_update(lambda _: self._mark_anchors_dirty())
@@ -265,20 +270,22 @@ class Viewer:
             wxyz, position, fov_y, aspect = camera_to_viser(camera)
             frustum = self.server.scene.add_camera_frustum(
                 f"/training_cameras/{dataset_index:05d}", fov=fov_y, aspect=aspect,
-                scale=self.config.frustum_scale * self._scene_extent, thickness=0.03 * self.config.frustum_scale * self._scene_extent,
+                scale=self.config.frustum_scale * self._scene_extent, thickness=1.5, thickness_units="screen",
                 wxyz=wxyz, position=position, color=(40, 90, 200),
             )
             frustum.on_click(lambda event, camera=camera: self.jump_to(event.client, camera))
             self._frustums.append(frustum)
         if len(training.cameras):
-            # The first training view, so the first render shows the scene.
+            # Behind and above the first training view, looking where it looks: the first render shows
+            # the scene with that camera's frustum in it rather than from inside the frustum.
             wxyz, position, fov_y, _ = camera_to_viser(training.cameras[0])
             rotation = viser.transforms.SO3(wxyz).as_matrix()
+            forward, up = rotation[:, 2], -rotation[:, 1]
             initial = self.server.initial_camera
             initial.fov = fov_y
-            initial.position = tuple(position)
-            initial.look_at = tuple(position + rotation[:, 2] * self._scene_extent)
-            initial.up = tuple(-rotation[:, 1])
+            initial.position = tuple(position + (0.3 * up - 0.5 * forward) * self._scene_extent)
+            initial.look_at = tuple(position + forward * self._scene_extent)
+            initial.up = tuple(up)
         self._anchor_cloud: Any = None
         self._refresh_anchors()
 
@@ -364,13 +371,13 @@ class Viewer:
         with self._views_lock:
             self._views.pop(client.client_id, None)
 
-    def _invalidate_views(self, settled: bool) -> None:
-        """Everything shown is stale. ``settled``: go straight to a full render (model update)."""
+    def _invalidate_views(self) -> None:
+        """A render option changed: every view is stale."""
         now = time.monotonic()
         with self._views_lock:
             for view in self._views.values():
                 view.version += 1
-                view.last_change_time = -math.inf if settled else now
+                view.last_change_time = now
         self._wake.set()
 
     # ------------------------------------------------------------------ the render thread
@@ -390,7 +397,6 @@ class Viewer:
                     last_refresh = now
                     if self.state.step != seen_step:
                         seen_step = self.state.step
-                        self._invalidate_views(settled=True)
                         if now - last_anchor_refresh >= self.config.anchor_refresh_seconds:
                             last_anchor_refresh = now
                             self._refresh_anchors()
@@ -407,12 +413,16 @@ class Viewer:
     def _next_job(self) -> tuple[_ClientView, RenderKind, int] | None:
         """The next client view to render (round robin) with its kind and version, if any."""
         now = time.monotonic()
+        step = self.state.step
+        refresh_due = now - self._last_model_refresh >= refresh_interval(
+            self._model_refresh_seconds, self.config.refresh_seconds, self.config.training_render_share
+        )
         with self._views_lock:
             views = list(self._views.values())
             for offset in range(len(views)):
                 view = views[(self._next_round_robin + offset) % len(views)]
                 kind = plan_render(now, view.last_change_time, view.version, view.rendered_version, view.rendered_full,
-                                   self.config.settle_seconds)
+                                   self.config.settle_seconds, model_changed=refresh_due and view.rendered_step != step)
                 if kind is not None:
                     self._next_round_robin = (self._next_round_robin + offset + 1) % len(views)
                     return view, kind, view.version
@@ -431,10 +441,8 @@ class Viewer:
     def _render(self, view: _ClientView, kind: RenderKind, version: int) -> None:
         options = self.render_options()
         camera_handle = view.client.camera
-        if kind == "full":
-            longest = options.max_resolution
-        else:
-            longest = min(self._preview_resolution, options.max_resolution)
+        longest = options.max_resolution if kind == "full" else min(self._preview_resolution, options.max_resolution)
+        step = self.state.step
         width, height = render_size(camera_handle.aspect, longest)
         camera = viser_to_camera(camera_handle.wxyz, camera_handle.position, camera_handle.fov, width, height)
         start = time.perf_counter()
@@ -444,10 +452,13 @@ class Viewer:
             image = _check_image(image, width, height)
         except Exception as err:
             self._report_error(f"render of '{options.output}' failed", err, view)
-            view.rendered_version, view.rendered_full = version, True  # no retry until something changes
+            # No retry until something changes.
+            view.rendered_version, view.rendered_full, view.rendered_step = version, True, step
             return
         seconds = time.perf_counter() - start
-        if kind == "preview":
+        if kind == "refresh":
+            self._last_model_refresh, self._model_refresh_seconds = time.monotonic(), seconds
+        if kind != "full":
             self._preview_resolution = next_resolution(
                 seconds, 1.0 / self.config.target_preview_fps, longest, self.config.min_resolution, options.max_resolution
             )
@@ -455,7 +466,8 @@ class Viewer:
             connected = view.client.client_id in self._views
         if connected:  # the browser may have left during the render
             view.client.scene.set_background_image(image, format="jpeg", jpeg_quality=self.config.jpeg_quality)
-        view.rendered_version, view.rendered_full = version, kind == "full"
+        view.rendered_version, view.rendered_step = version, step
+        view.rendered_full = kind == "full" or (kind == "refresh" and view.rendered_full)
         self.render_count += 1
         self.last_render_seconds = seconds
         self.last_image = image
