@@ -11,6 +11,10 @@ from __future__ import annotations
 import math
 import os
 import warnings
+
+# The CSR matmul below is the fast segment sum on CPU; its "beta" and invariant-check notices are noise.
+warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
 from typing import Callable
 
 import torch
@@ -70,7 +74,7 @@ def composite_chunk(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     means2d [G,2], conics [G,3], opacities [G], features [G,D] (G flattened Gaussians);
     gaussian_ids [R]; seg_ids [R] tile of each row within the chunk (non-decreasing);
     seg_starts [S] first row of each tile; tile_x, tile_y [S] pixel origin of each tile;
-    pix_x, pix_y [P] pixel-centre offsets inside a tile. Returns features [D,P,S] and alpha [P,S].
+    pix_x, pix_y [P] pixel-centre offsets inside a tile. Returns features [S,P,D] and alpha [S,P].
 
     Pairs are laid out [P,R] (pixel-major) so that the cumulative sum and the segment sums run
     along the contiguous last dimension -- about 10x faster on CPU than along rows.
@@ -93,11 +97,19 @@ def composite_chunk(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     log_t_after = torch.cumsum(log_t - reset, 1)  # log T after each Gaussian, within its tile
     weight = weight_fn(alpha, log_t, log_t_after)
 
-    feats = features[gaussian_ids].T  # [D,R]
-    out = features.new_zeros(feats.shape[0], weight.shape[0], num_segs)
-    out = out.index_add(2, seg_ids, weight[None] * feats[:, None, :])
-    acc = weight.new_zeros(weight.shape[0], num_segs).index_add(1, seg_ids, weight)
-    return out, acc
+    # Per-tile sums of weight x feature as one sparse matmul (3-4x faster than index_add on CPU):
+    # row (d, s) of the CSR matrix holds feature d of the Gaussians of tile s; a ones channel
+    # gives the accumulated alpha.
+    num_channels = features.shape[1] + 1
+    values = torch.cat([features[gaussian_ids], torch.ones_like(alpha[0, :, None])], 1)
+    counts = torch.diff(torch.cat([seg_starts, seg_starts.new_tensor([num_rows])]))
+    crow = torch.cat([seg_starts.new_zeros(1),
+                      torch.cumsum(counts.repeat(num_channels), 0)])
+    cols = torch.arange(num_rows, device=seg_ids.device).repeat(num_channels)
+    blocks = torch.sparse_csr_tensor(crow, cols, values.T.reshape(-1),
+                                     (num_channels * num_segs, num_rows))
+    sums = (blocks @ weight.T).reshape(num_channels, num_segs, -1).permute(1, 2, 0)  # [S,P,D+1]
+    return sums[..., :-1], sums[..., -1]
 
 
 def _run_chunk(use_compile: bool, *args: Tensor) -> tuple[Tensor, Tensor]:
@@ -153,8 +165,7 @@ class _Composite(torch.autograd.Function):
             args = _chunk_inputs(bins, start, end, means2d.dtype)
             chunk_out, chunk_acc = _run_chunk(use_compile, means2d, conics, opacities, features,
                                               *args)
-            out[start:end] = chunk_out.permute(2, 1, 0)
-            acc[start:end] = chunk_acc.T
+            out[start:end], acc[start:end] = chunk_out, chunk_acc
         ctx.save_for_backward(means2d, conics, opacities, features)
         ctx.bins, ctx.chunks, ctx.use_compile = bins, chunks, use_compile
         return out, acc
@@ -169,7 +180,7 @@ class _Composite(torch.autograd.Function):
                 out, acc = _run_chunk(ctx.use_compile, *inputs, *args)
                 chunk_grads = torch.autograd.grad(
                     (out, acc), inputs,
-                    (grad_out[start:end].permute(2, 1, 0), grad_acc[start:end].T),
+                    (grad_out[start:end], grad_acc[start:end]),
                     allow_unused=True)
             for total, g in zip(grads, chunk_grads):
                 if g is not None:
