@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from hico_plugin.scenes.generate import generate_scene, scene_config
 from hico_plugin.scenes.render import render_view
@@ -27,9 +28,10 @@ def bench_render(name: str, views: int) -> None:
     render_view(scene.caster, scene.viewmats[0], scene.K, scene.width, scene.height, scene.sun, config.ambient,
                 config.shadows)  # warm-up (pixel ray cache)
     wall, cpu = time.perf_counter(), time.process_time()
-    for i in picks:
-        render_view(scene.caster, scene.viewmats[i], scene.K, scene.width, scene.height, scene.sun,
-                    config.ambient, config.shadows)
+    with threadpool_limits(limits=1, user_api="blas"):  # as generate_scene renders
+        for i in picks:
+            render_view(scene.caster, scene.viewmats[i], scene.K, scene.width, scene.height, scene.sun,
+                        config.ambient, config.shadows)
     wall, cpu = (time.perf_counter() - wall) / views, (time.process_time() - cpu) / views
     rays = scene.width * scene.height
     print(f"{name:11s} {len(scene.primitives):3d} primitives  {scene.width}x{scene.height}  "

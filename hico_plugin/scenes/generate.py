@@ -25,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pycolmap
+from threadpoolctl import threadpool_limits
 
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes import effects as fx
@@ -137,6 +138,13 @@ def image_name(index: int) -> str:
 
 def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
     """Render every view of ``scene`` and write the dataset into ``out``; returns the scene.json dict."""
+    # The caster's matrix products are tall and skinny ([rays, 3] x [3, k]); multithreaded BLAS
+    # makes them 10x slower in CPU time (and worse on a busy machine), so run single-threaded.
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _write_scene(scene, out, key)
+
+
+def _write_scene(scene: Scene, out: Path, key: str) -> dict:
     config = scene.config
     enabled = set(scene.enabled_effects)
     t_start = time.perf_counter()
