@@ -14,6 +14,7 @@ import torch
 import viser
 import websockets.sync.client
 
+from hico_plugin.errors import HicoError
 from hico_plugin.viewer import RenderOptions, TrainingCameras, Viewer, ViewerConfig, viser_to_camera
 from hico_plugin.viewer.demo import orbit_cameras
 
@@ -162,6 +163,13 @@ def test_viewer_renders_a_browser_camera_and_frees_its_port(capsys):
         assert again.port == port
     finally:
         again.stop()
+
+
+def test_bad_viewer_config_is_a_clear_error():
+    with pytest.raises(HicoError, match="viewer.training_render_share"):
+        Viewer(ViewerConfig(training_render_share=0.0), RecordingRender(), FakeState())
+    with pytest.raises(HicoError, match="viewer.min_resolution"):
+        Viewer(ViewerConfig(min_resolution=600, max_resolution=512), RecordingRender(), FakeState())
 
 
 def test_busy_port_moves_to_the_next_one_and_prints_the_real_url(capsys):

@@ -59,6 +59,8 @@ class ViewerConfig(InstantiateConfig):
     """While training: how often the stats and plot are refreshed (and at most how often the view is)."""
     training_render_share: float = 0.2
     """While training: the largest share of wall time spent re-rendering the view as the model changes."""
+    refresh_render_seconds: float = 1.0
+    """While training: model-update re-renders are sized to take about this long (1 s at share 0.2: one every 5 s)."""
     anchor_refresh_seconds: float = 5.0
     """While training: how often the anchor cloud is re-read from the model."""
     max_cameras: int = 100
@@ -103,6 +105,8 @@ def _validate_config(config: ViewerConfig) -> None:
         )
     if config.target_preview_fps <= 0:
         raise HicoError(f"viewer.target_preview_fps: expected > 0, got {config.target_preview_fps}")
+    if not 0.0 < config.training_render_share <= 1.0:
+        raise HicoError(f"viewer.training_render_share: expected in (0, 1], got {config.training_render_share}")
 
 
 class Viewer:
@@ -127,6 +131,7 @@ class Viewer:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._preview_resolution = config.max_resolution
+        self._refresh_resolution = config.max_resolution
         self._anchor_positions = np.zeros((0, 3), np.float32)
         self._anchor_levels = np.zeros((0,), np.int64)
         self._anchors_per_level = np.zeros((0,), np.int64)
@@ -441,7 +446,8 @@ class Viewer:
     def _render(self, view: _ClientView, kind: RenderKind, version: int) -> None:
         options = self.render_options()
         camera_handle = view.client.camera
-        longest = options.max_resolution if kind == "full" else min(self._preview_resolution, options.max_resolution)
+        adaptive = {"full": options.max_resolution, "preview": self._preview_resolution, "refresh": self._refresh_resolution}
+        longest = min(adaptive[kind], options.max_resolution)
         step = self.state.step
         width, height = render_size(camera_handle.aspect, longest)
         camera = viser_to_camera(camera_handle.wxyz, camera_handle.position, camera_handle.fov, width, height)
@@ -458,7 +464,10 @@ class Viewer:
         seconds = time.perf_counter() - start
         if kind == "refresh":
             self._last_model_refresh, self._model_refresh_seconds = time.monotonic(), seconds
-        if kind != "full":
+            self._refresh_resolution = next_resolution(
+                seconds, self.config.refresh_render_seconds, longest, self.config.min_resolution, options.max_resolution
+            )
+        elif kind == "preview":
             self._preview_resolution = next_resolution(
                 seconds, 1.0 / self.config.target_preview_fps, longest, self.config.min_resolution, options.max_resolution
             )
