@@ -1,0 +1,30 @@
+"""Geometry out: TSDF mesh extraction from a trained model and surface metrics against ground truth.
+
+Public API::
+
+    MeshExportConfig(...).run(config_path, checkpoint=None, device=None) -> Path   # hico-export ... mesh
+    extract_mesh(model, dataset, config: MeshExportConfig) -> TriangleMesh         # COLMAP frame
+    fuse_tsdf(depths, colors, cameras, voxel_size, sdf_trunc, max_depth, min_weight=1.0) -> TriangleMesh
+    multiview_depth_filter(depths [C, H, W], cameras, ...) -> [C, H, W] bool
+    clean_mesh(mesh, min_component_triangles) -> TriangleMesh
+    evaluate_surface(mesh, gt_points [M, 3]) -> SurfaceMetrics                     # tau = 1.5 x GT spacing
+    write_ply(path, mesh) / read_ply(path)
+"""
+
+from hico_plugin.mesh.evaluate import evaluate_surface, sample_surface
+from hico_plugin.mesh.extract import MeshExportConfig, extract_mesh
+from hico_plugin.mesh.mesh import TriangleMesh, clean_mesh, read_ply, write_ply
+from hico_plugin.mesh.tsdf import fuse_tsdf, multiview_depth_filter
+
+__all__ = [
+    "MeshExportConfig",
+    "TriangleMesh",
+    "clean_mesh",
+    "evaluate_surface",
+    "extract_mesh",
+    "fuse_tsdf",
+    "multiview_depth_filter",
+    "read_ply",
+    "sample_surface",
+    "write_ply",
+]

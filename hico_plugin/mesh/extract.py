@@ -1,0 +1,117 @@
+"""Mesh extraction from a trained model: render depth + RGB over the training views at full LOD, fuse
+them in a TSDF, mesh, clean, and map the vertices to the original COLMAP frame.
+
+Distances in ``MeshExportConfig`` are in COLMAP units (those of the output PLY); fusion runs in the
+normalised frame the model works in, so they are multiplied by ``dataset.transform.scale`` there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.errors import HicoError
+from hico_plugin.mesh.mesh import TriangleMesh, clean_mesh, write_ply
+from hico_plugin.mesh.tsdf import fuse_tsdf, multiview_depth_filter
+
+
+@dataclass
+class MeshExportConfig(InstantiateConfig):
+    """TSDF-fuse rendered depth and colour of the training views into a PLY mesh (COLMAP frame)."""
+
+    output_path: Path | None = None
+    """Where to write the mesh; default RUN/mesh.ply next to the run's config.yml."""
+    depth: Literal["plane", "expected"] = "plane"
+    """Depth to fuse: plane depth (DNGC's unbiased depth, the default) or alpha-normalised expected depth."""
+    voxel_size: float | None = None
+    """TSDF voxel edge in COLMAP units; default the scene extent (robust sparse-point box diagonal) / 512."""
+    sdf_trunc: float | None = None
+    """TSDF truncation distance in COLMAP units; default 4 x voxel size."""
+    max_depth: float | None = None
+    """Depths beyond this (COLMAP units) are ignored; default the far camera-to-point distance of the scene."""
+    min_alpha: float = 0.5
+    """Pixels whose accumulated opacity is below this carry no depth (their depth is unreliable)."""
+    depth_filter: bool = False
+    """Keep only pixels whose depth is confirmed by neighbour views (reprojection < 1 px, consistent depth)."""
+    filter_neighbours: int = 8
+    """Nearest views (by camera centre) the depth filter checks each view against."""
+    filter_min_views: int = 2
+    """The depth filter keeps a pixel when at least this many neighbour views agree."""
+    min_weight: float = 1.0
+    """Voxels observed by fewer views than this are left out of the surface."""
+    min_component_triangles: int = 1000
+    """Connected components with fewer triangles are removed (floaters)."""
+
+    def setup(self, **kwargs: Any) -> "MeshExportConfig":
+        return self
+
+    def run(self, config_path: str | Path, checkpoint: str | Path | None = None, device: str | None = None) -> Path:
+        """Load the run at ``config_path`` (RUN/config.yml), extract its mesh, write it; returns the path."""
+        from hico_plugin.engine import load_run
+
+        _, model, dataset = load_run(config_path, checkpoint, device)
+        mesh = extract_mesh(model, dataset, self)
+        path = self.output_path or Path(config_path).parent / "mesh.ply"
+        return write_ply(path, mesh)
+
+
+def scene_extent(dataset: Any) -> float:
+    """Diagonal (normalised units) of the 1st-99th percentile box of the sparse points (of the camera
+    centres when there are too few points)."""
+    points = dataset.points if len(dataset.points) >= 10 else dataset.cameras.centers
+    points = points.to(torch.float64)
+    box = torch.quantile(points[:: max(1, len(points) // 1_000_000)], torch.tensor([0.01, 0.99], dtype=torch.float64), dim=0)
+    extent = float((box[1] - box[0]).norm())
+    if not extent > 0:
+        raise HicoError("mesh: cannot derive a voxel size from the scene (its points span no volume); set --voxel-size")
+    return extent
+
+
+@torch.no_grad()
+def render_depths(model: Any, dataset: Any, indices: list[int], depth: str, min_alpha: float
+                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Per view ([H, W] camera z in the normalised frame, 0 = none; [H, W, 3] uint8 RGB) at full LOD."""
+    name = {"plane": "plane_depth", "expected": "depth"}[depth]
+    depths, colors = [], []
+    for i in indices:
+        out, _ = model.render(dataset.cameras[i], {name, "rgb", "alpha"}, step=None)
+        view_depth = getattr(out, name)[..., 0].float().cpu()
+        alpha = out.alpha[..., 0].float().cpu()
+        depths.append(torch.where(alpha >= min_alpha, view_depth, torch.zeros_like(view_depth)))
+        colors.append((out.rgb[..., :3].float().clamp(0, 1) * 255).round().to(torch.uint8).cpu())
+    return depths, colors
+
+
+def extract_mesh(model: Any, dataset: Any, config: MeshExportConfig) -> TriangleMesh:
+    """The cleaned, coloured mesh of ``model`` over ``dataset``'s training views, in the COLMAP frame."""
+    scale = float(dataset.transform.scale)
+    indices = [int(i) for i in dataset.train_indices]
+    if not indices:
+        raise HicoError("mesh: the dataset has no training views to render")
+    voxel = config.voxel_size * scale if config.voxel_size is not None else scene_extent(dataset) / 512
+    trunc = config.sdf_trunc * scale if config.sdf_trunc is not None else 4 * voxel
+    max_depth = config.max_depth * scale if config.max_depth is not None else dataset.camera_distance_range()[1]
+    depths, colors = render_depths(model, dataset, indices, config.depth, config.min_alpha)
+    cameras = _subset(dataset.cameras, indices)
+    if config.depth_filter:
+        if len({tuple(d.shape) for d in depths}) > 1:
+            raise HicoError("mesh: --depth-filter needs training views of one size; this dataset mixes sizes")
+        keep = multiview_depth_filter(torch.stack(depths), cameras, config.filter_neighbours, config.filter_min_views)
+        depths = [torch.where(k, d, torch.zeros_like(d)) for d, k in zip(depths, keep)]
+    mesh = fuse_tsdf(depths, colors, cameras, voxel, trunc, max_depth, config.min_weight)
+    mesh = clean_mesh(mesh, config.min_component_triangles)
+    if len(mesh.faces) == 0:
+        raise HicoError(f"mesh: fusion left no surface (voxel {voxel / scale:.4g}, max depth {max_depth / scale:.4g} "
+                        f"COLMAP units, components under {config.min_component_triangles} triangles removed); "
+                        "check --voxel-size / --max-depth / --min-component-triangles")
+    vertices = dataset.transform.points_to_colmap(torch.from_numpy(mesh.vertices)).numpy()
+    return TriangleMesh(vertices, mesh.faces, mesh.vertex_colors)
+
+
+def _subset(cameras: Any, indices: list[int]) -> Any:
+    ids = torch.tensor(indices, dtype=torch.long)
+    return type(cameras)(cameras.viewmats[ids], cameras.Ks[ids], cameras.widths[ids], cameras.heights[ids])
