@@ -1,8 +1,9 @@
 """Front-to-back alpha compositing of binned Gaussians, in bounded-memory chunks of tiles.
 
-Every (intersection, pixel-of-its-tile) pair is evaluated as one row of an [R, tile_size^2] block;
-transmittance is a per-tile cumulative sum of log(1 - alpha) down the rows, so the early stop
-(T < 1e-4) is a mask instead of a loop. The autograd Function keeps only its inputs and recomputes
+Every (pixel-of-a-tile, intersection) pair is one element of a [tile_size^2, R] block (R = the
+chunk's intersections in (tile, depth) order); transmittance is a per-tile cumulative sum of
+log(1 - alpha) along R, so the early stop (T < 1e-4) is a mask instead of a loop, and the per-tile
+sums of weight x feature are one sparse (CSR) matmul. The autograd Function keeps only its inputs and recomputes
 each chunk in backward, so peak memory is one chunk's pairs, not image size x Gaussian count.
 """
 
@@ -11,10 +12,6 @@ from __future__ import annotations
 import math
 import os
 import warnings
-
-# The CSR matmul below is the fast segment sum on CPU; its "beta" and invariant-check notices are noise.
-warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
 from typing import Callable
 
 import torch
@@ -22,6 +19,10 @@ from torch import Tensor
 
 from hico_plugin.rasterizer.projection import ALPHA_MIN
 from hico_plugin.rasterizer.tiling import TileBins
+
+# The CSR matmul is the fast segment sum on CPU; its "beta" and invariant-check notices are noise.
+warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
 
 ALPHA_MAX = 0.99
 LOG_T_MIN = math.log(1e-4)  # a Gaussian is drawn only while the transmittance after it stays above
