@@ -114,7 +114,6 @@ def fuse_tsdf(depths: Sequence[Tensor], colors: Sequence[Tensor], cameras: Camer
     depths: C x [H, W] camera z (0 / non-finite = no surface; > ``max_depth`` is ignored);
     colors: C x [H, W, 3] uint8; voxel_size, sdf_trunc, max_depth in the cameras' world units.
     """
-    o3d = import_open3d()
     for name, value in (("voxel_size", voxel_size), ("sdf_trunc", sdf_trunc), ("max_depth", max_depth)):
         if not (value > 0 and math.isfinite(value)):
             raise HicoError(f"mesh: {name} must be a positive finite distance, got {value}")
@@ -132,6 +131,7 @@ def fuse_tsdf(depths: Sequence[Tensor], colors: Sequence[Tensor], cameras: Camer
     if sum(count for _, _, count in frames) == 0:
         raise HicoError(f"mesh: no pixel in any of the {len(cameras)} depth maps has a depth in (0, "
                         f"max_depth={max_depth:.4g}]: the depths are empty or all too far (raise max_depth?)")
+    o3d = import_open3d()
     o3c = o3d.core
     # The hashed voxel-block TSDF (Open3D's scalable volume; its legacy ScalableTSDFVolume integrates
     # nothing in the 0.20 CPU wheel, so the maintained tensor API is used). The block map grows as needed.
