@@ -95,7 +95,7 @@ def _sky_fraction(picture: np.ndarray) -> float:
 
 
 def test_viewer_in_headless_chromium(tmp_path):
-    model, dataset = DemoModel(), DemoDataset(12)
+    model, dataset = DemoModel(), DemoDataset(6)
     viewer = ViewerConfig(port=0, max_resolution=384).setup(
         render_fn=model_render_fn(model), state=RunViewerState(model, dataset)
     )

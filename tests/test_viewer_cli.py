@@ -33,7 +33,7 @@ def test_demo_serves_and_stops_on_ctrl_c():
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     process = subprocess.Popen(
-        [sys.executable, "-m", "hico_plugin.cli.view", "--demo", "--viewer.port", str(port)],
+        [sys.executable, "-m", "hico_plugin.cli.view", "--demo", "--viewer.port", str(port), "--viewer.thumbnail-size", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     lines: list[str] = []

@@ -3,6 +3,8 @@ a browser camera placed at a training view through the model."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from test_viewer_server import ProtocolClient, _wait_for
@@ -12,12 +14,14 @@ from hico_plugin.model import HiCoModelConfig
 from hico_plugin.rasterizer.renderer import RendererConfig
 from hico_plugin.viewer import (
     OUTPUT_NAMES,
+    REQUIRED_OUTPUTS,
     RenderOptions,
     RunViewerState,
     ViewableModel,
     ViewerConfig,
     camera_to_viser,
     model_render_fn,
+    visualize,
 )
 
 
@@ -31,14 +35,16 @@ def tiny_model():
 def test_every_output_of_the_real_model_draws(tiny_model):
     model, dataset = tiny_model
     assert isinstance(model, ViewableModel)
-    render = model_render_fn(model)
     camera = dataset.cameras[int(dataset.train_indices[0])].scaled(0.25)
-    positions, levels = model.viewer_anchors()
-    num_levels = int(levels.max()) + 1
+    num_levels = int(model.viewer_anchors()[1].max()) + 1
+    # One render with every output any view needs (the model reads only these three fields).
+    everything = SimpleNamespace(required_outputs=tuple(sorted(set().union(*REQUIRED_OUTPUTS.values()))),
+                                 clca_enabled=True, level_range=None)
+    outputs = model.viewer_render(camera, everything)
     for name in OUTPUT_NAMES:
-        image = render(camera, RenderOptions(output=name, num_levels=num_levels))
+        image = visualize(outputs, RenderOptions(output=name, num_levels=num_levels))
         assert image.dtype == np.uint8 and image.shape == (camera.height, camera.width, 3), name
-    without_clca = render(camera, RenderOptions(clca_enabled=False))
+    without_clca = model_render_fn(model)(camera, RenderOptions(clca_enabled=False))
     assert without_clca.shape == (camera.height, camera.width, 3)
 
 
