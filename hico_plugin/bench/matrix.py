@@ -1,0 +1,217 @@
+"""The benchmark matrix: presets x scenes x training budgets, one cached JSON per cell.
+
+Budgets and schedules: the model scales every step-valued schedule (progressive levels,
+densification, DNGC t0 / T) by ``max_steps``. With ``schedule="nested"`` (default) one run per
+(preset, scene) trains to the largest budget and is evaluated when it passes each smaller budget:
+cheap, and it shows the accuracy a user has *at that time* of a long run — but a 500-step checkpoint
+of a 2000-step run has not finished its schedule (e.g. DNGC may not have started yet), so it is not
+the same as a run configured for 500 steps. ``schedule="separate"`` trains each budget as its own
+run with its own schedule (costs the sum of the budgets). The config hash in every cell key includes
+``max_steps``, so cells of the two modes never mix.
+
+Cache layout (``OUTPUT/``)::
+
+    cells/<preset>__<scene>__b<budget>__s<seed>__<hash>.json    one finished cell (atomic write)
+    runs/<scene>/<preset>-s<seed>-<hash>/                      the training run (config.yml, checkpoint)
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal, Optional
+
+import torch
+
+from hico_plugin.bench.timing import STAGES, StageTimer
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.engine import TrainerCallback, evaluate
+from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.errors import HicoError
+from hico_plugin.presets import PRESETS, HiCoTrainerConfig
+
+ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hico-gs-max", "hico-gs-attn")
+"""The paper's ablation rows (Table 5), baseline first."""
+
+METRIC_KEYS = ("psnr", "ssim", "lpips", "depth_abs_rel", "normal_error_deg", "num_anchors", "num_gaussians", "fps")
+"""Evaluation figures every cell records (None where unavailable, e.g. no ground-truth normals)."""
+
+
+@dataclass
+class BenchConfig(InstantiateConfig):
+    """A benchmark matrix. Defaults: the paper's ablation rows on both built-in scenes."""
+
+    presets: tuple[str, ...] = ABLATION_PRESETS
+    """Presets to compare (rows of the ablation table)."""
+    scenes: tuple[str, ...] = ("city-block", "pagoda")
+    """Built-in scenes (ignored when --data is given)."""
+    data: Optional[Path] = None
+    """A COLMAP dataset directory to benchmark instead of the built-in scenes."""
+    budgets: tuple[int, ...] = (150, 300, 600)
+    """Training budgets in optimizer steps (checkpoints of one run when schedule is nested)."""
+    schedule: Literal["nested", "separate"] = "nested"
+    """nested: one run per (preset, scene) to the largest budget, evaluated at each budget (its
+    schedules scaled to the largest budget); separate: one run per budget with its own schedule."""
+    seed: int = 42
+    """Seed of every run (the same for all cells, so presets see the same view order)."""
+    downscale: int = 2
+    """Image downscale factor of the training data."""
+    max_eval_views: int = 8
+    """Evaluate on at most this many test views (evenly spaced over the test split)."""
+    lpips: Literal["vgg", "alex", "none"] = "alex"
+    """LPIPS backbone at evaluation ("none" skips LPIPS)."""
+    quick: bool = False
+    """Smoke mode: the tiny scene, hico-gs vs octree-gs, budgets 20 and 40, no LPIPS."""
+    output_dir: Path = Path("bench_out")
+    """Where cells/, runs/, results.json and report.md go."""
+    device: str = "auto"
+    """Training device (as hico-train --device)."""
+
+    def resolved(self) -> "BenchConfig":
+        """This config with --quick applied and its fields checked."""
+        config = self
+        if config.quick:  # quick replaces only what the command line left at its default
+            default = BenchConfig()
+            keep = {name: getattr(config, name) for name in ("presets", "scenes", "budgets", "lpips", "downscale",
+                                                             "max_eval_views")
+                    if getattr(config, name) != getattr(default, name)}
+            quick = {"presets": ("octree-gs", "hico-gs"), "scenes": ("tiny",), "budgets": (20, 40),
+                     "lpips": "none", "downscale": 1, "max_eval_views": 2}
+            config = dataclasses.replace(config, **{**quick, **keep})
+        unknown = [p for p in config.presets if p not in PRESETS]
+        if unknown:
+            raise HicoError(f"--presets: unknown {unknown}; expected some of {sorted(PRESETS)}")
+        if not config.presets or not config.budgets:
+            raise HicoError("--presets / --budgets: expected at least one value each")
+        if min(config.budgets) < 1:
+            raise HicoError(f"--budgets: expected positive step counts, got {list(config.budgets)}")
+        if config.data is not None and not Path(config.data).is_dir():
+            raise HicoError(f"--data {config.data}: not a directory (expected a COLMAP dataset)")
+        if config.max_eval_views < 1 or config.downscale < 1:
+            raise HicoError("--max-eval-views / --downscale: expected >= 1")
+        return dataclasses.replace(config, budgets=tuple(sorted(set(config.budgets))))
+
+    def scene_names(self) -> tuple[str, ...]:
+        return (Path(self.data).name,) if self.data is not None else tuple(self.scenes)
+
+
+def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int) -> HiCoTrainerConfig:
+    """The training config of one run of the matrix (output_dir not yet set)."""
+    config = copy.deepcopy(PRESETS[preset][1])
+    data = dataclasses.replace(config.data, downscale=bench.downscale,
+                               data=Path(bench.data) if bench.data is not None else None,
+                               scene=config.data.scene if bench.data is not None else scene)
+    model = dataclasses.replace(config.model, eval_lpips=bench.lpips)
+    return dataclasses.replace(config, data=data, model=model, max_steps=max_steps, seed=bench.seed,
+                               experiment_name=scene, eval_every=0, save_every=0, keep_checkpoints=1,
+                               vis="none", progress="none", overwrite=True, resume=False, device=bench.device,
+                               output_dir=Path("."))
+
+
+def config_hash(config: HiCoTrainerConfig, bench: BenchConfig) -> str:
+    """Short hash of everything that changes a cell's figures (the run config + how it is evaluated)."""
+    text = repr(dataclasses.replace(config, output_dir=Path("."))) + f"|eval_views={bench.max_eval_views}"
+    return hashlib.sha1(text.encode()).hexdigest()[:10]
+
+
+def cell_path(bench: BenchConfig, preset: str, scene: str, budget: int, digest: str) -> Path:
+    return Path(bench.output_dir) / "cells" / f"{preset}__{scene}__b{budget}__s{bench.seed}__{digest}.json"
+
+
+def eval_indices(test_indices: list[int], limit: int) -> list[int]:
+    """At most ``limit`` of ``test_indices``, evenly spaced (all of them when there are fewer)."""
+    if len(test_indices) <= limit:
+        return list(test_indices)
+    positions = torch.linspace(0, len(test_indices) - 1, limit).round().long().tolist()
+    return [test_indices[i] for i in positions]
+
+
+class CheckpointRecorder(TrainerCallback):
+    """Evaluates the run when it completes each budget and writes that cell; stops after the last.
+
+    Wall time is the trainer's ``train_seconds`` (training only: evaluation is excluded) and the stage
+    breakdown is the mean over the steps so far; evaluation renders are not timed.
+    """
+
+    def __init__(self, timer: StageTimer, cells: dict[int, Path], base: dict[str, Any], max_eval_views: int,
+                 log: Callable[[str], None]):
+        self.timer, self.cells, self.base = timer, cells, base
+        self.max_eval_views, self.log = max_eval_views, log
+        self.trainer: Any = None
+
+    def on_train_start(self, trainer: Any, step: int) -> None:
+        self.trainer = trainer
+
+    def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
+        budget = step + 1
+        if budget not in self.cells:
+            return
+        trainer = self.trainer
+        with self.timer.paused():
+            results = evaluate(trainer.model, trainer.dataset,
+                               eval_indices(trainer.test_indices, self.max_eval_views), trainer.device)
+        stage_ms = self.timer.mean_ms()
+        record = {**self.base, "budget": budget,
+                  "wall_seconds": float(metrics.get("train_seconds", trainer.train_seconds)),
+                  **{key: _float(results.get(key)) for key in METRIC_KEYS},
+                  "stage_ms": stage_ms, "step_ms": sum(stage_ms.values()),
+                  "eval_views": int(results.get("num_views", 0))}
+        write_text_atomic(self.cells[budget], json.dumps(record, indent=2, allow_nan=True) + "\n")
+        psnr = record["psnr"]
+        self.log(f"  {record['preset']} / {record['scene']} @ {budget} steps: PSNR "
+                 f"{psnr if psnr is None else round(psnr, 2)}, {record['wall_seconds']:.1f} s, "
+                 f"{record['step_ms']:.0f} ms/step")
+        if budget == max(self.cells):
+            trainer.request_stop()  # the trainer's own full-test-split evaluation is not needed
+
+
+def _float(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def plan(bench: BenchConfig) -> list[dict[str, Any]]:
+    """The runs the matrix needs: each {preset, scene, max_steps, budgets, hash, cells{budget: path},
+    run_dir, config}, with ``todo`` False when every one of its cells is cached."""
+    runs = []
+    for scene in bench.scene_names():
+        for preset in bench.presets:
+            groups = [bench.budgets] if bench.schedule == "nested" else [(b,) for b in bench.budgets]
+            for budgets in groups:
+                config = run_config(bench, preset, scene, max(budgets))
+                digest = config_hash(config, bench)
+                cells = {b: cell_path(bench, preset, scene, b, digest) for b in budgets}
+                run_dir = Path(bench.output_dir) / "runs" / scene / f"{preset}-s{bench.seed}-{digest}"
+                runs.append({"preset": preset, "scene": scene, "max_steps": max(budgets), "hash": digest,
+                             "cells": cells, "run_dir": run_dir,
+                             "config": dataclasses.replace(config, output_dir=run_dir),
+                             "todo": not all(p.is_file() for p in cells.values())})
+    return runs
+
+
+def run_matrix(bench: BenchConfig, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Train and evaluate every uncached cell of ``bench`` (already ``resolved()``); returns all cells."""
+    runs = plan(bench)
+    todo = [r for r in runs if r["todo"]]
+    log(f"hico-bench: {len(runs)} runs, {len(runs) - len(todo)} cached, {len(todo)} to train")
+    for number, run in enumerate(todo, 1):
+        log(f"[{number}/{len(todo)}] {run['preset']} on {run['scene']}, {run['max_steps']} steps")
+        start = time.perf_counter()
+        config = run["config"]
+        timer = StageTimer()
+        base = {"preset": run["preset"], "scene": run["scene"], "seed": bench.seed, "config_hash": run["hash"],
+                "schedule": bench.schedule, "max_steps": run["max_steps"], "run_dir": str(run["run_dir"])}
+        recorder = CheckpointRecorder(timer, run["cells"], base, bench.max_eval_views, log)
+        trainer = config.setup(callbacks=[recorder])
+        timer.device = trainer.device
+        with timer.attach(trainer.model, trainer.optimizers):
+            trainer.train()
+        missing = [b for b, p in run["cells"].items() if not p.is_file()]
+        if missing:
+            raise HicoError(f"{run['run_dir']}: run ended before budgets {missing} (interrupted?)")
+        log(f"  done in {time.perf_counter() - start:.0f} s")
+    return [json.loads(p.read_text()) for run in runs for p in run["cells"].values()]

@@ -1,0 +1,245 @@
+"""results.json, report.md (tables + optional matplotlib figures) and the comparison of two results."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from hico_plugin.bench.timing import STAGES
+from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.errors import HicoError
+
+RESULTS_VERSION = 1
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
+    """For (cost, quality) points: True where no other point is at most as costly and at least as
+    good with one of the two strictly better (lower cost / higher quality is better)."""
+    flags = []
+    for i, (cost, quality) in enumerate(points):
+        dominated = any(c <= cost and q >= quality and (c < cost or q > quality)
+                        for j, (c, q) in enumerate(points) if j != i)
+        flags.append(not dominated)
+    return flags
+
+
+def mark_pareto(cells: list[dict[str, Any]]) -> None:
+    """Set ``cell["pareto"]``: on the (wall time, PSNR) front of its scene."""
+    for scene in {c["scene"] for c in cells}:
+        group = [c for c in cells if c["scene"] == scene and c.get("psnr") is not None]
+        for cell, flag in zip(group, pareto_front([(c["wall_seconds"], c["psnr"]) for c in group])):
+            cell["pareto"] = flag
+
+
+def build_results(bench: Any, cells: list[dict[str, Any]]) -> dict[str, Any]:
+    cells = sorted(cells, key=lambda c: (c["scene"], c["preset"], c["budget"]))
+    mark_pareto(cells)
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(bench).items()}
+    return {"version": RESULTS_VERSION, "bench": settings, "cells": cells}
+
+
+def load_results(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if path.is_dir():
+        path = path / "results.json"
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise HicoError(f"{path}: cannot read a hico-bench results.json ({err.__class__.__name__})") from None
+    if not isinstance(document, dict) or not isinstance(document.get("cells"), list):
+        raise HicoError(f"{path}: not a hico-bench results.json (expected a 'cells' list)")
+    return document
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+
+def _presets(cells: list[dict[str, Any]]) -> list[str]:
+    return list(dict.fromkeys(c["preset"] for c in cells))
+
+
+def _final(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each (preset, scene)'s cell at the largest budget."""
+    best: dict[tuple[str, str], dict[str, Any]] = {}
+    for cell in cells:
+        key = (cell["preset"], cell["scene"])
+        if key not in best or cell["budget"] > best[key]["budget"]:
+            best[key] = cell
+    return list(best.values())
+
+
+def ablation_table(cells: list[dict[str, Any]]) -> str:
+    """Paper shape: one row per preset, PSNR per scene at the largest budget, mean wall time."""
+    final = _final(cells)
+    scenes = list(dict.fromkeys(c["scene"] for c in final))
+    rows = []
+    for preset in _presets(final):
+        mine = {c["scene"]: c for c in final if c["preset"] == preset}
+        seconds = [c["wall_seconds"] for c in mine.values()]
+        steps = [c["step_ms"] for c in mine.values()]
+        rows.append([preset] + [_fmt(mine[s]["psnr"]) if s in mine else "–" for s in scenes]
+                    + [_fmt(sum(seconds) / len(seconds), 1), _fmt(sum(steps) / len(steps), 0)])
+    return _table(["method"] + [f"{s} PSNR" for s in scenes] + ["train time (s)", "ms / step"], rows)
+
+
+def accuracy_time_table(cells: list[dict[str, Any]]) -> str:
+    header = ["scene", "method", "steps", "PSNR", "SSIM", "LPIPS", "depth AbsRel", "normal err (°)",
+              "anchors", "Gaussians", "wall (s)", "FPS", "Pareto"]
+    rows = [[c["scene"], c["preset"], str(c["budget"]), _fmt(c["psnr"]), _fmt(c["ssim"], 3), _fmt(c["lpips"], 3),
+             _fmt(c["depth_abs_rel"], 3), _fmt(c["normal_error_deg"], 1), _fmt(c["num_anchors"], 0),
+             _fmt(c["num_gaussians"], 0), _fmt(c["wall_seconds"], 1), _fmt(c["fps"], 1),
+             "★" if c.get("pareto") else ""] for c in cells]
+    return _table(header, rows)
+
+
+def stage_means(cells: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """preset -> stage -> ms per step, averaged over scenes at the largest budget."""
+    out = {}
+    for preset in _presets(cells):
+        mine = [c for c in _final(cells) if c["preset"] == preset]
+        out[preset] = {s: sum(c["stage_ms"].get(s, 0.0) for c in mine) / len(mine) for s in STAGES}
+    return out
+
+
+def breakdown_table(cells: list[dict[str, Any]]) -> str:
+    means = stage_means(cells)
+    rows = [[preset] + [_fmt(ms[s], 1) for s in STAGES] + [_fmt(sum(ms.values()), 1)] for preset, ms in means.items()]
+    return _table(["method"] + list(STAGES) + ["total"], rows)
+
+
+def component_costs(cells: list[dict[str, Any]]) -> list[str]:
+    """What CLCA and DNGC cost per step and bought in PSNR, each against the octree-gs baseline."""
+    means, final = stage_means(cells), _final(cells)
+    if "octree-gs" not in means:
+        return ["(no octree-gs baseline in this matrix: component costs not computed)"]
+
+    def psnr(preset: str) -> float | None:
+        values = [c["psnr"] for c in final if c["preset"] == preset and c["psnr"] is not None]
+        return sum(values) / len(values) if values else None
+
+    base_ms, base_psnr, lines = sum(means["octree-gs"].values()), psnr("octree-gs"), []
+    for preset, label in (("hico-gs-clca", "CLCA"), ("hico-gs-dngc", "DNGC"), ("hico-gs", "CLCA + DNGC")):
+        if preset not in means:
+            continue
+        ms, gain = sum(means[preset].values()), psnr(preset)
+        delta = "–" if gain is None or base_psnr is None else f"{gain - base_psnr:+.2f} dB"
+        lines.append(f"- {label} ({preset}): {ms - base_ms:+.1f} ms/step ({100 * (ms / base_ms - 1):+.0f}%) vs "
+                     f"octree-gs; PSNR {delta}; its clca stage {means[preset]['clca']:.1f} ms, losses "
+                     f"{means[preset]['losses']:.1f} ms (baseline {means['octree-gs']['losses']:.1f} ms)")
+    return lines
+
+
+def write_plots(cells: list[dict[str, Any]], out_dir: Path) -> list[str]:
+    """PNG figures; [] when matplotlib is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    scenes = list(dict.fromkeys(c["scene"] for c in cells))
+    names = []
+    for key, label, name in (("psnr", "test PSNR (dB)", "psnr_vs_time.png"),
+                             ("normal_error_deg", "normal error (deg)", "normal_vs_time.png")):
+        if all(c.get(key) is None for c in cells):
+            continue
+        fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
+        for ax, scene in zip(axes[0], scenes):
+            for preset in _presets(cells):
+                mine = [c for c in cells if c["scene"] == scene and c["preset"] == preset and c.get(key) is not None]
+                ax.plot([c["wall_seconds"] for c in mine], [c[key] for c in mine], "o-", label=preset)
+            front = sorted((c for c in cells if c["scene"] == scene and c.get("pareto") and c.get(key) is not None),
+                           key=lambda c: c["wall_seconds"])
+            if key == "psnr" and front:
+                ax.step([c["wall_seconds"] for c in front], [c["psnr"] for c in front], "k--", where="post",
+                        linewidth=1, label="Pareto front")
+                ax.scatter([c["wall_seconds"] for c in front], [c["psnr"] for c in front], s=120,
+                           facecolors="none", edgecolors="k")
+            ax.set(title=scene, xlabel="training wall time (s)", ylabel=label)
+            ax.grid(alpha=0.3)
+        axes[0][0].legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out_dir / name, dpi=100)
+        plt.close(fig)
+        names.append(name)
+    means = stage_means(cells)
+    fig, ax = plt.subplots(figsize=(1.4 * len(means) + 3, 4))
+    bottom = [0.0] * len(means)
+    for stage in STAGES:
+        heights = [ms[stage] for ms in means.values()]
+        ax.bar(list(means), heights, bottom=bottom, label=stage)
+        bottom = [b + h for b, h in zip(bottom, heights)]
+    ax.set(ylabel="ms per training step", title="where a training step's time goes")
+    ax.legend(fontsize=8, bbox_to_anchor=(1.02, 1), loc="upper left")
+    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    fig.tight_layout()
+    fig.savefig(out_dir / "stage_breakdown.png", dpi=100)
+    plt.close(fig)
+    return names + ["stage_breakdown.png"]
+
+
+def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
+    cells, bench = results["cells"], results["bench"]
+    parts = ["# hico-bench report", "",
+             f"Presets {', '.join(_presets(cells))}; budgets {bench.get('budgets')} steps "
+             f"({bench.get('schedule')} schedule), seed {bench.get('seed')}, downscale {bench.get('downscale')}. "
+             "Wall time is training time only (evaluation excluded).", "",
+             "## Ablation (largest budget)", "", ablation_table(cells), "",
+             "## Accuracy vs time", "", "★ = on the (wall time, PSNR) Pareto front of its scene.", "",
+             accuracy_time_table(cells), "",
+             "## Where a training step's time goes (ms per step, mean over the run)", "", breakdown_table(cells), "",
+             "### What CLCA and DNGC cost", "", *component_costs(cells), ""]
+    parts += ["## Figures", ""]
+    if plots is None or not plots:
+        parts.append("matplotlib is not installed (`pip install hico_plugin[bench]`): tables only, no figures.")
+    else:
+        parts += [f"![{name[:-4]}]({name})" for name in plots]
+    return "\n".join(parts) + "\n"
+
+
+def write_outputs(bench: Any, cells: list[dict[str, Any]], out_dir: Path, plots: bool = True) -> dict[str, Any]:
+    """Write results.json, the figures and report.md into ``out_dir``; returns the results."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results = build_results(bench, cells)
+    write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2, allow_nan=True) + "\n")
+    names = write_plots(results["cells"], out_dir) if plots else []
+    write_text_atomic(out_dir / "report.md", render_report(results, names))
+    return results
+
+
+def compare_results(a: dict[str, Any], b: dict[str, Any], name_a: str = "A", name_b: str = "B") -> str:
+    """Markdown table of the cells both results hold (matched by preset, scene, budget): B - A."""
+    index_a = {(c["preset"], c["scene"], c["budget"]): c for c in a["cells"]}
+    rows = []
+    for cell in b["cells"]:
+        key = (cell["preset"], cell["scene"], cell["budget"])
+        if key not in index_a:
+            continue
+        old = index_a[key]
+
+        def delta(field: str, digits: int) -> str:
+            if old.get(field) is None or cell.get(field) is None:
+                return "–"
+            return f"{old[field]:.{digits}f} → {cell[field]:.{digits}f} ({cell[field] - old[field]:+.{digits}f})"
+
+        rows.append([*map(str, key), delta("psnr", 2), delta("ssim", 3), delta("normal_error_deg", 1),
+                     delta("wall_seconds", 1), delta("step_ms", 0)])
+    if not rows:
+        return f"No cell (preset, scene, budget) is in both {name_a} and {name_b}.\n"
+    header = ["method", "scene", "steps", "PSNR", "SSIM", "normal err (°)", "wall (s)", "ms / step"]
+    only = len(a["cells"]) + len(b["cells"]) - 2 * len(rows)
+    return (f"# {name_b} vs {name_a}\n\n" + _table(header, rows)
+            + f"\n\n{len(rows)} cells matched; {only} in only one of the two.\n")
