@@ -21,6 +21,15 @@ needs_open3d = pytest.mark.skipif(importlib.util.find_spec("open3d") is None,
                                   reason="open3d not installed (pip install 'hico_plugin[mesh]')")
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small tensors: on the shared 2-core machine torch's second thread only adds spin-waiting."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     # 160 x 120 views: at the default 64 x 48 the ground seen at grazing angles is too coarsely sampled

@@ -27,26 +27,19 @@ def import_open3d():
     return open3d
 
 
-def _backproject(depth: Tensor, viewmat: Tensor, K: Tensor) -> Tensor:
-    """depth: [H, W] camera z -> [H, W, 3] world points (pixel centres at +0.5)."""
-    height, width = depth.shape
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=depth.dtype, device=depth.device) + 0.5,
-                            torch.arange(width, dtype=depth.dtype, device=depth.device) + 0.5, indexing="ij")
-    rays = torch.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], dim=-1)
-    in_camera = rays * depth[..., None]
-    rot, trans = viewmat[:3, :3], viewmat[:3, 3]
-    return (in_camera - trans) @ rot  # R^T (x - t), row-vector form
-
-
-def _project(points: Tensor, viewmat: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-    """points: [..., 3] world -> ([..., 2] pixel coordinates, [...] camera z); viewmat [..., 4, 4] and
-    K [..., 3, 3] broadcast against the points' leading dimensions."""
-    in_camera = (viewmat[..., :3, :3] @ points[..., None]).squeeze(-1) + viewmat[..., :3, 3]
+def _to_pixels(in_camera: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """in_camera: [..., P, 3] camera-space points; K: [..., 3, 3] -> ([..., P, 2] pixels, [..., P] z)."""
     z = in_camera[..., 2]
     safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
-    pixels = torch.stack([K[..., 0, 0] * in_camera[..., 0] / safe_z + K[..., 0, 2],
-                          K[..., 1, 1] * in_camera[..., 1] / safe_z + K[..., 1, 2]], dim=-1)
-    return pixels, z
+    focal, principal = torch.diagonal(K[..., :2, :2], dim1=-2, dim2=-1), K[..., :2, 2]
+    return in_camera[..., :2] / safe_z[..., None] * focal[..., None, :] + principal[..., None, :], z
+
+
+def _from_pixels(pixels: Tensor, depth: Tensor, K: Tensor) -> Tensor:
+    """pixels: [..., P, 2], depth: [..., P] camera z, K: [..., 3, 3] -> [..., P, 3] camera-space points."""
+    focal, principal = torch.diagonal(K[..., :2, :2], dim1=-2, dim2=-1), K[..., :2, 2]
+    xy = (pixels - principal[..., None, :]) / focal[..., None, :]
+    return torch.cat([xy, torch.ones_like(depth)[..., None]], dim=-1) * depth[..., None]
 
 
 def nearest_views(cameras: Cameras, num_neighbours: int) -> Tensor:
@@ -80,28 +73,28 @@ def multiview_depth_filter(depths: Tensor, cameras: Cameras, num_neighbours: int
     valid = torch.isfinite(depths) & (depths > 0)
     depths = torch.where(valid, depths, torch.zeros_like(depths))
     neighbours = nearest_views(cameras, num_neighbours)
+    rots, trans = viewmats[:, :3, :3], viewmats[:, :3, 3]
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=depths.dtype) + 0.5,
+                            torch.arange(width, dtype=depths.dtype) + 0.5, indexing="ij")
+    start = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)  # [P, 2] pixel centres of every view
     keep = torch.zeros_like(valid)
-    for i in range(num_views):  # views, not pixels: each step is vectorised over the image
-        points = _backproject(depths[i], viewmats[i], Ks[i])  # [H, W, 3]
-        start = torch.stack(torch.meshgrid(torch.arange(height, dtype=depths.dtype) + 0.5,
-                                           torch.arange(width, dtype=depths.dtype) + 0.5, indexing="ij")[::-1], -1)
+    for i in range(num_views):  # views, not pixels: each step is vectorised over all pixels and neighbours
         ids = neighbours[i]
-        pixels_j, z_j = _project(points[None], viewmats[ids, None, None], Ks[ids, None, None])  # [k, H, W, 2]
-        cols, rows = pixels_j[..., 0].floor().long(), pixels_j[..., 1].floor().long()
+        world = (_from_pixels(start, depths[i].reshape(-1), Ks[i]) - trans[i]) @ rots[i]  # R^T (x - t): [P, 3]
+        pixels_j, z_j = _to_pixels(torch.einsum("kab,pb->kpa", rots[ids], world) + trans[ids, None], Ks[ids])
+        cols, rows = pixels_j[..., 0].floor().long(), pixels_j[..., 1].floor().long()  # [k, P]
         inside = (z_j > 0) & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
         cols, rows = cols.clamp(0, width - 1), rows.clamp(0, height - 1)
-        depth_j = depths[ids[:, None, None], rows, cols]  # [k, H, W]
-        # The neighbour's surface point at that pixel, back in world and then in view i.
-        rays_j = torch.stack([(cols + 0.5 - Ks[ids, 0, 2, None, None]) / Ks[ids, 0, 0, None, None],
-                              (rows + 0.5 - Ks[ids, 1, 2, None, None]) / Ks[ids, 1, 1, None, None],
-                              torch.ones_like(depth_j)], dim=-1) * depth_j[..., None]
-        world_j = torch.einsum("khwc,kcd->khwd", rays_j - viewmats[ids, None, None, :3, 3], viewmats[ids, :3, :3])
-        back, back_z = _project(world_j, viewmats[i], Ks[i])
+        depth_j = depths[ids[:, None], rows, cols]
+        # The neighbour's own surface point at that pixel, back in world and then in view i.
+        hit_j = _from_pixels(torch.stack([cols, rows], dim=-1) + 0.5, depth_j, Ks[ids])
+        world_j = torch.einsum("kpa,kab->kpb", hit_j - trans[ids, None], rots[ids])
+        back, back_z = _to_pixels(world_j @ rots[i].T + trans[i], Ks[i])
         error_px = (back - start).norm(dim=-1)
-        depth_i = depths[i].expand_as(back_z)
+        depth_i = depths[i].reshape(1, -1)
         relative = (back_z - depth_i).abs() / depth_i.clamp_min(1e-12)
         agree = inside & (depth_j > 0) & (error_px < max_reprojection_px) & (relative < max_relative_depth)
-        keep[i] = valid[i] & (agree.sum(dim=0) >= min_consistent)
+        keep[i] = valid[i] & (agree.sum(dim=0) >= min_consistent).reshape(height, width)
     return keep
 
 
