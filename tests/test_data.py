@@ -12,6 +12,7 @@ import torch
 
 from hico_plugin.data import ColmapDataParserConfig, SceneTransform
 from hico_plugin.data.cache import ByteLRUCache
+from hico_plugin.data.dataset import linear_quantiles
 
 WIDTH, HEIGHT = 40, 30
 
@@ -333,3 +334,11 @@ def test_builtin_tiny_scene_ground_truth_agrees_with_normalised_cameras(tmp_path
         assert ((z - sampled).abs() / sampled)[visible].median() < 0.02
         normals = dataset.gt_normal(i)[depth > 0]
         assert torch.allclose(normals.norm(dim=-1), torch.ones(len(normals)), atol=1e-4)
+
+
+def test_linear_quantiles_match_torch_quantile():
+    values = torch.randn(5, 301, dtype=torch.float64)
+    probs = [0.0, 0.001, 0.37, 0.999, 1.0]
+    for count in (1, 2, 301):
+        expected = torch.quantile(values[:, :count], torch.tensor(probs, dtype=torch.float64), dim=1).T
+        assert torch.allclose(linear_quantiles(values[:, :count], probs), expected)
