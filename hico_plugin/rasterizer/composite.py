@@ -98,19 +98,51 @@ def composite_chunk(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     log_t_after = torch.cumsum(log_t - reset, 1)  # log T after each Gaussian, within its tile
     weight = weight_fn(alpha, log_t, log_t_after)
 
-    # Per-tile sums of weight x feature as one sparse matmul (3-4x faster than index_add on CPU):
-    # row (d, s) of the CSR matrix holds feature d of the Gaussians of tile s; a ones channel
-    # gives the accumulated alpha.
-    num_channels = features.shape[1] + 1
     values = torch.cat([features[gaussian_ids], torch.ones_like(alpha[0, :, None])], 1)
-    counts = torch.diff(torch.cat([seg_starts, seg_starts.new_tensor([num_rows])]))
-    crow = torch.cat([seg_starts.new_zeros(1),
-                      torch.cumsum(counts.repeat(num_channels), 0)])
-    cols = torch.arange(num_rows, device=seg_ids.device).repeat(num_channels)
-    blocks = torch.sparse_csr_tensor(crow, cols, values.T.reshape(-1),
-                                     (num_channels * num_segs, num_rows))
-    sums = (blocks @ weight.T).reshape(num_channels, num_segs, -1).permute(1, 2, 0)  # [S,P,D+1]
+    sums = _TileSums.apply(weight, values, seg_ids, seg_starts)  # [S,P,D+1]; last = alpha
     return sums[..., :-1], sums[..., -1]
+
+
+class _TileSums(torch.autograd.Function):
+    """Per-tile sums of weight x value: weight [P,R], values [R,C] -> [S,P,C].
+
+    As one CSR matmul, row (c, s) holding value c of the rows of tile s (3-4x faster than
+    index_add on CPU); the backward is a transposed CSR matmul plus a sampled matmul, 5x faster
+    than autograd through the sparse product.
+    """
+
+    @staticmethod
+    def forward(ctx, weight, values, seg_ids, seg_starts):
+        num_rows, num_channels = values.shape
+        num_segs = seg_starts.shape[0]
+        counts = torch.diff(torch.cat([seg_starts, seg_starts.new_tensor([num_rows])]))
+        crow = torch.cat([seg_starts.new_zeros(1), torch.cumsum(counts.repeat(num_channels), 0)])
+        cols = torch.arange(num_rows, device=values.device).repeat(num_channels)
+        blocks = torch.sparse_csr_tensor(crow, cols, values.T.reshape(-1),
+                                         (num_channels * num_segs, num_rows))
+        ctx.save_for_backward(weight, values, seg_ids)
+        ctx.blocks = blocks
+        return (blocks @ weight.T).reshape(num_channels, num_segs, -1).permute(1, 2, 0)
+
+    @staticmethod
+    def backward(ctx, grad):
+        weight, values, seg_ids = ctx.saved_tensors
+        num_rows, num_channels = values.shape
+        num_segs = grad.shape[0]
+        grad_rows = grad.permute(2, 0, 1).reshape(num_channels * num_segs, -1)  # [(c,s), P]
+        grad_weight = grad_values = None
+        if ctx.needs_input_grad[0]:
+            # the transpose: row r holds value c at column (c, seg(r))
+            blocks_t = torch.sparse_csr_tensor(
+                torch.arange(0, num_rows * num_channels + 1, num_channels, device=values.device),
+                (torch.arange(num_channels, device=values.device)[None, :] * num_segs
+                 + seg_ids[:, None]).reshape(-1),
+                values.reshape(-1), (num_rows, num_channels * num_segs))
+            grad_weight = (blocks_t @ grad_rows).T
+        if ctx.needs_input_grad[1]:
+            sampled = torch.sparse.sampled_addmm(ctx.blocks, grad_rows, weight, beta=0.0)
+            grad_values = sampled.values().reshape(num_channels, num_rows).T
+        return grad_weight, grad_values, None, None
 
 
 def _run_chunk(use_compile: bool, *args: Tensor) -> tuple[Tensor, Tensor]:
