@@ -1,0 +1,72 @@
+"""Rendered frames to disk: PNGs and MP4s, each written atomically (temp file + ``os.replace``)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+
+def _temp_next_to(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.fchmod(fd, 0o644)
+    os.close(fd)
+    return Path(tmp)
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write ``image`` uint8 [H, W, 3] RGB as a PNG, atomically."""
+    path = Path(path)
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    tmp = _temp_next_to(path)
+    try:
+        tmp.write_bytes(encoded.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+class Mp4Writer:
+    """Stream uint8 [H, W, 3] RGB frames into an MP4 (OpenCV, 'mp4v'); the file appears under its
+    name only on a successful ``close()``. ``available`` is False when no video writer works here
+    (then ``write`` / ``close`` do nothing and ``close`` returns False)."""
+
+    def __init__(self, path: str | os.PathLike, fps: float, width: int, height: int):
+        self.path = Path(path)
+        self._tmp = _temp_next_to(self.path)
+        self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
+        self.available = self._writer.isOpened()
+        self.size = (width, height)
+        self.count = 0
+
+    def write(self, frame: np.ndarray) -> None:
+        if not self.available:
+            return
+        if (frame.shape[1], frame.shape[0]) != self.size:
+            raise ValueError(f"{self.path}: frame of {frame.shape[1]}x{frame.shape[0]}, the video is {self.size[0]}x{self.size[1]}")
+        self._writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        self.count += 1
+
+    def close(self) -> bool:
+        """Finish the file; True when the MP4 was written."""
+        self._writer.release()
+        written = self.available and self.count > 0 and self._tmp.stat().st_size > 0
+        if written:
+            os.replace(self._tmp, self.path)
+        else:
+            self._tmp.unlink(missing_ok=True)
+        return written
+
+    def discard(self) -> None:
+        """Drop the unfinished video (after an error)."""
+        self._writer.release()
+        self._tmp.unlink(missing_ok=True)
