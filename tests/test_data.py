@@ -17,9 +17,10 @@ from hico_plugin.data.dataset import linear_quantiles
 WIDTH, HEIGHT = 40, 30
 
 
-def look_at(centre: np.ndarray, target=np.zeros(3)) -> np.ndarray:
+def look_at(centre: np.ndarray, target: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """[3, 4] cam_from_world of a camera at ``centre`` looking at ``target`` (OpenCV axes, z up)."""
-    forward = (target - centre) / np.linalg.norm(target - centre)
+    forward = np.asarray(target) - centre
+    forward /= np.linalg.norm(forward)
     right = np.cross(forward, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
@@ -53,9 +54,13 @@ def write_dataset(
     names, poses = [], []
     for i in range(num_images):
         angle = 2 * np.pi * i / num_images
-        pose = look_at(np.array([4 * np.cos(angle) + 1.0, 4 * np.sin(angle) - 2.0, 1.5]) , np.array([1.0, -2.0, 0.0]))
+        pose = look_at(
+            np.array([4 * np.cos(angle) + 1.0, 4 * np.sin(angle) - 2.0, 1.5]), np.array([1.0, -2.0, 0.0])
+        )
         name = f"view_{i:03d}.png"
-        reconstruction.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(pose))
+        reconstruction.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(pose)
+        )
         names.append(name)
         poses.append(pose)
     points = rng.uniform(-1, 1, (num_points, 3)) + np.array([1.0, -2.0, 0.0])
@@ -73,7 +78,14 @@ def write_dataset(
         for name in names:
             images[name] = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
             cv2.imwrite(str(root / "images" / name), images[name][..., ::-1])
-    return {"names": names, "poses": np.array(poses).reshape(-1, 3, 4), "points": points, "colors": colors, "images": images, "camera": camera}
+    return {
+        "names": names,
+        "poses": np.array(poses).reshape(-1, 3, 4),
+        "points": points,
+        "colors": colors,
+        "images": images,
+        "camera": camera,
+    }
 
 
 def test_pinhole_binary_model_loads_normalised(tmp_path):
@@ -97,10 +109,14 @@ def test_pinhole_binary_model_loads_normalised(tmp_path):
     assert np.allclose(viewmats[:, :3].numpy(), written["poses"], atol=1e-5)
     # the same point projects to the same pixel in both frames
     K = dataset.cameras.Ks[3].double()
+
     def project(viewmat, point):
         cam = viewmat[:3, :3] @ point + viewmat[:3, 3]
         return (K @ cam / cam[2])[:2]
-    colmap_pixel = project(torch.from_numpy(np.vstack([written["poses"][3], [0, 0, 0, 1]])), torch.from_numpy(written["points"][0]))
+
+    colmap_pixel = project(
+        torch.from_numpy(np.vstack([written["poses"][3], [0, 0, 0, 1]])), torch.from_numpy(written["points"][0])
+    )
     normalised_pixel = project(dataset.cameras.viewmats[3].double(), dataset.points[0].double())
     assert torch.allclose(colmap_pixel, normalised_pixel, atol=1e-3)
     # intrinsics and images at full resolution
@@ -178,7 +194,9 @@ def test_masks_ground_truth_and_metadata(tmp_path):
     assert torch.allclose(dataset.gt_depth(1)[..., 0], torch.from_numpy(depth) * dataset.transform.scale)
     assert torch.equal(dataset.gt_normal(1), torch.from_numpy(normal))
     assert dataset.gt_depth(0) is None
-    assert torch.allclose(dataset.gt_surface_points, dataset.transform.points_from_colmap(torch.from_numpy(surface)))
+    assert torch.allclose(
+        dataset.gt_surface_points, dataset.transform.points_from_colmap(torch.from_numpy(surface))
+    )
     assert dataset.metadata["effects"] == ["exposure"]
 
     half = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
@@ -197,7 +215,10 @@ DISTORTED = {
 
 def pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """A smooth colour image of normalised image coordinates: [..., 3] float in [0, 255]."""
-    return np.stack([127.5 + 100 * np.sin(3 * x) * np.cos(2 * y), 127.5 + 100 * np.cos(4 * y), 127.5 + 90 * np.sin(2 * x + y)], -1)
+    return np.stack(
+        [127.5 + 100 * np.sin(3 * x) * np.cos(2 * y), 127.5 + 100 * np.cos(4 * y), 127.5 + 90 * np.sin(2 * x + y)],
+        -1,
+    )
 
 
 @pytest.mark.parametrize("model", sorted(DISTORTED))
@@ -214,7 +235,9 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
     u, v = np.meshgrid(np.arange(size[0], dtype=np.float64), np.arange(size[1], dtype=np.float64))
     pixels = np.stack([u.ravel(), v.ravel()], -1)[:, None]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rays = cv2.undistortPoints(pixels, K_opencv, np.array(opencv_coefficients), None, np.eye(3), np.eye(3), criteria)[:, 0]
+    rays = cv2.undistortPoints(
+        pixels, K_opencv, np.array(opencv_coefficients), None, np.eye(3), np.eye(3), criteria
+    )[:, 0]
     distorted = pattern(rays[:, 0], rays[:, 1]).reshape(size[1], size[0], 3).round().astype(np.uint8)
     for name in written["names"]:
         cv2.imwrite(str(tmp_path / "images" / name), distorted[..., ::-1])
@@ -244,7 +267,9 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
 def test_opencv_undistortion_matches_cv2_undistort_points(tmp_path):
     """A single bright pixel lands where cv2.undistortPoints sends it."""
     params, coefficients = DISTORTED["OPENCV"]
-    written = write_dataset(tmp_path, model="OPENCV", params=params, size=(80, 60), num_images=2, write_images=False)
+    written = write_dataset(
+        tmp_path, model="OPENCV", params=params, size=(80, 60), num_images=2, write_images=False
+    )
     spot = np.zeros((60, 80, 3), np.uint8)
     spot[12:15, 60:63] = 255  # centre (61, 13) in OpenCV pixels
     for name in written["names"]:
@@ -292,7 +317,7 @@ def test_image_cache_is_bounded_by_bytes(tmp_path):
 
 def test_byte_lru_cache_evicts_least_recently_used():
     cache = ByteLRUCache(max_bytes=300)
-    make = lambda: np.zeros(100, np.uint8)  # noqa: E731
+    make = lambda: np.zeros(100, np.uint8)
     for key in "abc":
         cache.get(key, make)
     cache.get("a", lambda: pytest.fail("'a' should be cached"))
@@ -326,7 +351,12 @@ def test_builtin_tiny_scene_ground_truth_agrees_with_normalised_cameras(tmp_path
         in_camera = surface @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
         pixels = in_camera @ camera.K.T
         pixels = pixels[:, :2] / pixels[:, 2:]
-        inside = (in_camera[:, 2] > 0) & (pixels >= 0).all(1) & (pixels[:, 0] < camera.width) & (pixels[:, 1] < camera.height)
+        inside = (
+            (in_camera[:, 2] > 0)
+            & (pixels >= 0).all(1)
+            & (pixels[:, 0] < camera.width)
+            & (pixels[:, 1] < camera.height)
+        )
         z = in_camera[inside, 2]
         sampled = depth[pixels[inside, 1].long(), pixels[inside, 0].long()]
         visible = (sampled > 0) & ((z - sampled).abs() < 0.05 * sampled)

@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from test_data import HEIGHT, WIDTH, write_dataset
 
 from hico_plugin.cli import inspect as inspect_cli
 from hico_plugin.data import ColmapDataParserConfig
 from hico_plugin.errors import HicoError
-from test_data import HEIGHT, WIDTH, write_dataset
 
 
 def parse(root, **options):
@@ -71,7 +71,9 @@ def test_image_size_disagrees_with_camera(tmp_path):
 @pytest.mark.parametrize("model", ["OPENCV_FISHEYE", "FULL_OPENCV"])
 def test_unsupported_camera_model(tmp_path, model):
     write_dataset(tmp_path, model=model)
-    expect_error(rf"cameras: camera 1 has model {model}; supported models: PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL", tmp_path)
+    expect_error(
+        rf"cameras: camera 1 has model {model}; supported models: PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL", tmp_path
+    )
 
 
 def test_zero_registered_images(tmp_path):
@@ -113,7 +115,7 @@ def test_duplicate_image_names(tmp_path):
 def test_truncated_image_file(tmp_path, truncate):
     written = write_dataset(tmp_path)
     name = written["names"][4]
-    ok, encoded = cv2.imencode(f".{truncate}", np.full((HEIGHT, WIDTH, 3), 90, np.uint8))
+    _, encoded = cv2.imencode(f".{truncate}", np.full((HEIGHT, WIDTH, 3), 90, np.uint8))
     (tmp_path / "images" / name).write_bytes(encoded.tobytes()[: len(encoded) // 2])
     dataset = parse(tmp_path)
     with pytest.raises(HicoError, match=r"view_004\.png: unreadable or truncated image file"):

@@ -42,25 +42,34 @@ def summarize(dataset: Dataset) -> list[str]:
     levels = round(math.log2(dist_max / dist_min)) + 1 if dist_min > 0 else 1
     has_masks = sum(path is not None for path in dataset.mask_paths)
     ground_truth = [
-        kind for kind, present in (
+        kind
+        for kind, present in (
             ("depth", dataset.gt_depth(0) is not None),
             ("normal", dataset.gt_normal(0) is not None),
             ("surface points", dataset.gt_surface_points is not None),
-        ) if present
+        )
+        if present
     ]
     centre = ", ".join(f"{v:.4g}" for v in dataset.transform.centre.tolist())
     lines = [
         f"dataset      {dataset.data_dir}" + scene_label(dataset.metadata),
-        f"images       {len(dataset)} registered: {len(dataset.train_indices)} train, {len(dataset.test_indices)} test"
-        f"  (from {dataset.image_paths[0].parent})",
-        f"cameras      {len(dataset.sources)}: " + ", ".join(f"{model} x{n}" for model, n in sorted(models.items()))
+        (
+            f"images       {len(dataset)} registered: {len(dataset.train_indices)} train, "
+            f"{len(dataset.test_indices)} test  (from {dataset.image_paths[0].parent})"
+        ),
+        f"cameras      {len(dataset.sources)}: "
+        + ", ".join(f"{model} x{n}" for model, n in sorted(models.items()))
         + (f"  ({undistorted} undistorted to PINHOLE)" if undistorted else ""),
         f"resolution   {size_text}",
         f"points       {len(dataset.points)} sparse points",
-        f"scene scale  centre ({centre}), scale {dataset.transform.scale:.6g} (normalised units per COLMAP unit), "
-        f"camera extent {dataset.cameras_extent():.4g}",
-        f"LOD range    camera-point distance {dist_min:.4g} .. {dist_max:.4g} (normalised), "
-        f"ratio {dist_max / max(dist_min, 1e-12):.3g} -> {levels} octree levels at fork 2",
+        (
+            f"scene scale  centre ({centre}), scale {dataset.transform.scale:.6g} (normalised units per "
+            f"COLMAP unit), camera extent {dataset.cameras_extent():.4g}"
+        ),
+        (
+            f"LOD range    camera-point distance {dist_min:.4g} .. {dist_max:.4g} (normalised), "
+            f"ratio {dist_max / max(dist_min, 1e-12):.3g} -> {levels} octree levels at fork 2"
+        ),
         f"masks        {has_masks} of {len(dataset)} views",
         f"ground truth {', '.join(ground_truth) if ground_truth else 'none'}",
     ]

@@ -5,4 +5,4 @@ from hico_plugin.data.parser import DATAPARSERS, ColmapDataParserConfig
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import SUPPORTED_MODELS
 
-__all__ = ["DATAPARSERS", "ColmapDataParserConfig", "Dataset", "SceneTransform", "SUPPORTED_MODELS"]
+__all__ = ["DATAPARSERS", "SUPPORTED_MODELS", "ColmapDataParserConfig", "Dataset", "SceneTransform"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +45,7 @@ def read_colmap_model(model_dir: Path) -> ColmapModel:
     """Read and check the model in ``model_dir``; every problem is one HicoError line."""
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
-    except Exception as err:  # pycolmap raises plain RuntimeErrors / ValueErrors on bad files
+    except Exception as err:  # noqa: BLE001 -- pycolmap raises bare RuntimeError/ValueError on bad files
         message = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
         raise HicoError(f"{model_dir}: cannot read the COLMAP model ({message})") from None
 
@@ -53,7 +54,7 @@ def read_colmap_model(model_dir: Path) -> ColmapModel:
         raise HicoError(f"{model_dir}: the model has no registered images (expected at least one posed image)")
     images.sort(key=lambda image: image.name)
     names = [image.name for image in images]
-    duplicates = sorted({a for a, b in zip(names, names[1:]) if a == b})
+    duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
     if duplicates:
         raise HicoError(f"{model_dir}/images: duplicate image names {duplicates[:5]} (expected unique names)")
 

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -189,10 +190,16 @@ class Dataset:
         points = self.points[:: max(1, -(-len(self.points) // max_points))]
         centres = self.cameras.centers[self.train_indices]
         chunk = max(1, 4_000_000 // len(points))
-        per_camera = torch.cat([
-            linear_quantiles(torch.cdist(centres[s : s + chunk], points), [1.0 - dist_ratio, dist_ratio])
-            for s in range(0, len(centres), chunk)
-        ]).reshape(1, -1).to(torch.float64)
+        per_camera = (
+            torch.cat(
+                [
+                    linear_quantiles(torch.cdist(centres[s : s + chunk], points), [1.0 - dist_ratio, dist_ratio])
+                    for s in range(0, len(centres), chunk)
+                ]
+            )
+            .reshape(1, -1)
+            .to(torch.float64)
+        )
         dist_min, dist_max = linear_quantiles(per_camera, [1.0 - dist_ratio, dist_ratio])[0].tolist()
         return dist_min, dist_max
 
@@ -236,7 +243,9 @@ class Dataset:
         except (OSError, ValueError) as err:
             raise HicoError(f"{path}: unreadable .npy file ({err})") from None
         if array.ndim != ndim or not np.issubdtype(array.dtype, np.floating):
-            raise HicoError(f"{path}: expected a float array with {ndim} dimensions, got {array.dtype} {array.shape}")
+            raise HicoError(
+                f"{path}: expected a float array with {ndim} dimensions, got {array.dtype} {array.shape}"
+            )
         return np.ascontiguousarray(array, dtype=np.float32)
 
 

@@ -62,7 +62,9 @@ class ColmapDataParserConfig(InstantiateConfig):
         """Read, check and normalise the dataset; images stay on disk until first used."""
         data_dir = self.data
         if not data_dir.is_dir():
-            raise HicoError(f"data directory {data_dir}: not found (expected a COLMAP dataset with images/ and sparse/0)")
+            raise HicoError(
+                f"data directory {data_dir}: not found (expected a COLMAP dataset with images/ and sparse/0)"
+            )
         if self.downscale < 1:
             raise HicoError(f"--downscale: expected a whole number >= 1, got {self.downscale}")
         model = read_colmap_model(find_model_dir(data_dir))
@@ -103,7 +105,9 @@ class ColmapDataParserConfig(InstantiateConfig):
             train_indices=train_indices,
             test_indices=test_indices,
             mask_paths=self._mask_paths(model.names),
-            undistorted_dir=self._undistorted_dir(model) if any(s.needs_undistortion for s in sources.values()) else None,
+            undistorted_dir=self._undistorted_dir(model)
+            if any(s.needs_undistortion for s in sources.values())
+            else None,
             cache_bytes=self.cache_mb * 2**20,
             metadata=self._metadata(),
         )
@@ -131,7 +135,9 @@ class ColmapDataParserConfig(InstantiateConfig):
         elif self.test_every == 0:
             is_test = np.zeros(len(names), dtype=bool)
         else:
-            raise HicoError(f"--test-every: expected 0 (no test split) or a positive number, got {self.test_every}")
+            raise HicoError(
+                f"--test-every: expected 0 (no test split) or a positive number, got {self.test_every}"
+            )
         if is_test.all():
             field = "--test-names" if self.test_names else f"--test-every {self.test_every}"
             raise HicoError(f"{field}: the test split takes all {len(names)} images, leaving none to train on")
@@ -161,7 +167,10 @@ class ColmapDataParserConfig(InstantiateConfig):
         """A folder keyed by everything the undistorted pixels depend on."""
         key_source = json.dumps(
             [self.images_dir, self.downscale]
-            + [[cid, c.model.name, c.width, c.height, list(map(float, c.params))] for cid, c in sorted(model.cameras.items())]
+            + [
+                [cid, c.model.name, c.width, c.height, list(map(float, c.params))]
+                for cid, c in sorted(model.cameras.items())
+            ]
         )
         key = hashlib.sha1(key_source.encode()).hexdigest()[:12]
         if self.cache_dir is not None:

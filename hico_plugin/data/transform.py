@@ -21,11 +21,11 @@ class SceneTransform:
     scale: float  # normalised units per COLMAP unit
 
     @classmethod
-    def identity(cls) -> "SceneTransform":
+    def identity(cls) -> SceneTransform:
         return cls(torch.zeros(3, dtype=torch.float64), 1.0)
 
     @classmethod
-    def from_camera_centres(cls, centres: Tensor, fallback_points: Tensor | None = None) -> "SceneTransform":
+    def from_camera_centres(cls, centres: Tensor, fallback_points: Tensor | None = None) -> SceneTransform:
         """nerfstudio's auto-scale: centre on the mean camera centre, scale so the farthest camera
         centre lies at distance 1 (``centres``: [C, 3]). With one camera (or all cameras at one
         spot) the spread of ``fallback_points`` [P, 3] sets the scale instead."""
@@ -63,5 +63,5 @@ class SceneTransform:
         return {"centre": [float(v) for v in self.centre], "scale": float(self.scale)}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "SceneTransform":
+    def from_dict(cls, data: dict) -> SceneTransform:
         return cls(torch.tensor(data["centre"], dtype=torch.float64), float(data["scale"]))
