@@ -372,3 +372,15 @@ def test_linear_quantiles_match_torch_quantile():
     for count in (1, 2, 301):
         expected = torch.quantile(values[:, :count], torch.tensor(probs, dtype=torch.float64), dim=1).T
         assert torch.allclose(linear_quantiles(values[:, :count], probs), expected)
+
+
+def test_read_only_dataset_caches_undistorted_images_in_the_user_cache(tmp_path, monkeypatch):
+    params, _ = DISTORTED["SIMPLE_RADIAL"]
+    root = tmp_path / "dataset"
+    write_dataset(root, model="SIMPLE_RADIAL", params=params, size=(80, 60), num_images=2)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user_cache"))
+    monkeypatch.setattr("hico_plugin.data.parser.os.access", lambda path, mode: False)
+    dataset = ColmapDataParserConfig(data=root, test_every=0).setup()
+    dataset.image(0)
+    assert not (root / ".hico_cache").exists()
+    assert len(list((tmp_path / "user_cache" / "hico_plugin").rglob("view_000.png.png"))) == 1
