@@ -82,3 +82,14 @@ def test_short_training_run_learns_with_clca_and_dngc(tiny):
     for name in ("psnr", "ssim", "depth_abs_rel", "normal_error_deg"):
         assert math.isfinite(results[name]), name
     assert results["psnr"] > 15
+
+
+def test_viewer_lod_controls(tiny):
+    model = _config().setup(dataset=tiny, total_steps=300)
+    camera = tiny.cameras[0]
+    levels = model.field.levels
+    near = model.field.select(camera, None)
+    far = model.field.select(camera, None, distance_scale=8.0)
+    assert levels[far].max() < levels[near].max()  # a larger distance scale picks coarser levels
+    _, gaussians = model.render(camera, {"rgb"}, level_range=(0, 0))
+    assert (levels[gaussians.anchor_ids] == 0).all()

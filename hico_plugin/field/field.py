@@ -165,16 +165,17 @@ class AnchorField(nn.Module):
         return active_level_count(self.grid, step, self.level_interval_ends)
 
     @torch.no_grad()
-    def select(self, camera: Camera, step: int | None = None) -> Tensor:
+    def select(self, camera: Camera, step: int | None = None, distance_scale: float = 1.0) -> Tensor:
         """Anchors to decode for ``camera``: LOD (paper Eq. 1 with eps) then frustum culling.
 
-        step: training step (progressive levels) or None at eval (all levels). Returns visible_ids
-        [V] long, ascending.
+        step: training step (progressive levels) or None at eval (all levels). distance_scale
+        multiplies the camera distance in Eq. 1 (>1 picks coarser levels; the viewer's LOD control).
+        Returns visible_ids [V] long, ascending.
         """
         positions = self.anchors.detach()
         center = camera.center.to(positions)
         lod = lod_visible(positions, self.levels, self.extra_level, center, self.grid,
-                          self.active_levels(step))
+                          self.active_levels(step), distance_scale)
         ids = lod.nonzero().squeeze(1)
         radii = 3.0 * torch.exp(self.log_scaling.detach()[ids, :3]).amax(1)  # 3-sigma anchor extent
         in_view = frustum_visible(positions[ids], radii, camera, self.config.near, self.config.frustum_margin)

@@ -37,14 +37,15 @@ def active_level_count(grid: OctreeGrid, step: int | None, interval_ends: list[f
 
 
 def lod_visible(positions: Tensor, levels: Tensor, extra_level: Tensor, camera_center: Tensor,
-                grid: OctreeGrid, active_levels: int) -> Tensor:
+                grid: OctreeGrid, active_levels: int, distance_scale: float = 1.0) -> Tensor:
     """Anchors whose level l_i <= predicted level (paper Eq. 1): [N] bool.
 
-    positions [N,3], levels [N], extra_level [N] (eps_i), camera_center [3]. The distance is
+    positions [N,3], levels [N], extra_level [N] (eps_i), camera_center [3], distance_scale
+    multiplies every distance (1 = Eq. 1). The distance is
     ``||p_i - c||`` as in the paper's Eq. 1 (the base code adds a half-voxel shift to p first; the
     paper does not, and anchors here sit on their grid points, so no shift is applied).
     """
-    dist = (positions - camera_center).norm(dim=-1)
+    dist = (positions - camera_center).norm(dim=-1) * distance_scale
     predicted = lod_levels_from_distance(dist, grid, extra_level, max_level=active_levels - 1)
     return levels <= predicted
 

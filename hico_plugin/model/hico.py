@@ -103,13 +103,14 @@ class HiCoModel(nn.Module):
         return {"rgb"} | self.losses.required_outputs(step)
 
     def render(self, camera: Camera, outputs: tuple[str, ...] | set[str] = ("rgb",), step: int | None = None,
-               context_enabled: bool = True, level_range: tuple[int, int] | None = None
-               ) -> tuple[RenderOutputs, NeuralGaussians]:
+               context_enabled: bool = True, level_range: tuple[int, int] | None = None,
+               distance_scale: float = 1.0) -> tuple[RenderOutputs, NeuralGaussians]:
         """Render ``camera`` (step None = evaluation: every level active); ``level_range`` keeps only
-        anchors of those octree levels (inclusive; the viewer's LOD override)."""
+        anchors of those octree levels (inclusive) and ``distance_scale`` scales the LOD distance
+        (the viewer's LOD controls)."""
         device = self.background.device
         camera = self.appearance_camera(camera.to(device))
-        visible_ids = self.field.select(camera, step)
+        visible_ids = self.field.select(camera, step, distance_scale)
         if level_range is not None:
             levels = self.field.levels[visible_ids]
             visible_ids = visible_ids[(levels >= level_range[0]) & (levels <= level_range[1])]
@@ -127,7 +128,7 @@ class HiCoModel(nn.Module):
         octree level of the drawn Gaussians, composited as a colour channel."""
         wanted = set(options.required_outputs) - {"level"}
         out, gaussians = self.render(camera, wanted or {"alpha"}, None, options.clca_enabled,
-                                     options.level_range)
+                                     options.level_range, options.distance_scale)
         images = out.images()
         if "level" in options.required_outputs:
             levels = self.field.levels[gaussians.anchor_ids].to(gaussians.means)[:, None]
@@ -188,8 +189,7 @@ class HiCoModel(nn.Module):
         if not self.field.is_densify_step(step):
             return
         # Every worker must grow and prune identically: sum the statistics over workers first.
-        for name in ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom", "stat_views"):
-            all_reduce_sum_(getattr(self.field, name))
+        self.field.sync_stats(all_reduce_sum_)
         resized = self.field.densify(step)
         groups = self.field.param_groups()
         for group, (kept_rows, num_new) in resized.items():
