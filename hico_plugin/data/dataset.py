@@ -93,7 +93,7 @@ class Dataset:
     # ------------------------------------------------------------------ images and masks
     def image(self, i: int) -> Tensor:
         """uint8 [H, W, 3] RGB of view ``i`` at the loaded resolution (cached, least recently used
-        evicted first)."""
+        evicted first). The tensor shares the cache's memory: copy it before changing it in place."""
         return torch.from_numpy(self._cache.get(("image", i), lambda: self.load_image(i)))
 
     def mask(self, i: int) -> Tensor | None:
