@@ -133,8 +133,10 @@ def test_extract_mesh_with_nothing_drawn_is_a_clear_error(tiny):
             out.alpha = torch.zeros_like(out.alpha)  # nothing opaque: every depth is discarded
             return out, None
 
-    with pytest.raises(HicoError, match="no pixel in any of the 10 depth maps"):
+    with pytest.raises(HicoError, match="no pixel of the 10 training views reaches opacity --min-alpha 0.5"):
         extract_mesh(Empty(tiny), ColmapDataParserConfig(data=tiny.data_dir).setup(), MeshExportConfig())
+    with pytest.raises(HicoError, match=r"has a plane depth in \(0, --max-depth 0.001\] \(COLMAP units\)"):
+        extract_mesh(_ExactDepthModel(tiny), tiny, MeshExportConfig(max_depth=1e-3))
 
 
 def test_clean_mesh_drops_a_small_floating_blob():

@@ -2,7 +2,9 @@
 
 Public API::
 
-    MeshExportConfig(...).run(config_path, checkpoint=None, device=None) -> Path   # hico-export ... mesh
+    MeshExportConfig(...).run(loaded_run) -> Path              # hico-export target (.model/.dataset/.run_dir)
+    MeshExportConfig(...).run_config(config_path, checkpoint=None, device=None) -> Path
+    MeshExportConfig(...).export(model, dataset, run_dir) -> Path
     extract_mesh(model, dataset, config: MeshExportConfig) -> TriangleMesh         # COLMAP frame
     fuse_tsdf(depths, colors, cameras, voxel_size, sdf_trunc, max_depth, min_weight=1.0) -> TriangleMesh
     multiview_depth_filter(depths [C, H, W], cameras, ...) -> [C, H, W] bool

@@ -23,8 +23,8 @@ from hico_plugin.mesh.tsdf import fuse_tsdf, multiview_depth_filter
 class MeshExportConfig(InstantiateConfig):
     """TSDF-fuse rendered depth and colour of the training views into a PLY mesh (COLMAP frame)."""
 
-    output_path: Path | None = None
-    """Where to write the mesh; default RUN/mesh.ply next to the run's config.yml."""
+    output: Path | None = None
+    """PLY to write (default RUN/exports/mesh.ply)."""
     depth: Literal["plane", "expected"] = "plane"
     """Depth to fuse: plane depth (DNGC's unbiased depth, the default) or alpha-normalised expected depth."""
     voxel_size: float | None = None
@@ -49,14 +49,25 @@ class MeshExportConfig(InstantiateConfig):
     def setup(self, **kwargs: Any) -> "MeshExportConfig":
         return self
 
-    def run(self, config_path: str | Path, checkpoint: str | Path | None = None, device: str | None = None) -> Path:
-        """Load the run at ``config_path`` (RUN/config.yml), extract its mesh, write it; returns the path."""
+    def export(self, model: Any, dataset: Any, run_dir: Path) -> Path:
+        """Extract the mesh of ``model`` and write it (to ``output`` or RUN/exports/mesh.ply)."""
+        mesh = extract_mesh(model, dataset, self)
+        path = write_ply(self.output or Path(run_dir) / "exports" / "mesh.ply", mesh)
+        print(f"mesh: wrote {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles ({self.depth} depth, "
+              f"{len(dataset.train_indices)} training views) to {path}")
+        return path
+
+    def run(self, run: Any) -> Path:
+        """hico-export's target protocol: ``run`` has ``model``, ``dataset`` and ``run_dir``."""
+        return self.export(run.model, run.dataset, run.run_dir)
+
+    def run_config(self, config_path: str | Path, checkpoint: str | Path | None = None,
+                   device: str | None = None) -> Path:
+        """Load the run at ``config_path`` (RUN/config.yml) and export its mesh; returns the path."""
         from hico_plugin.engine import load_run
 
         _, model, dataset = load_run(config_path, checkpoint, device)
-        mesh = extract_mesh(model, dataset, self)
-        path = self.output_path or Path(config_path).parent / "mesh.ply"
-        return write_ply(path, mesh)
+        return self.export(model, dataset, Path(config_path).parent)
 
 
 def scene_extent(dataset: Any) -> float:
@@ -72,18 +83,18 @@ def scene_extent(dataset: Any) -> float:
 
 
 @torch.no_grad()
-def render_depths(model: Any, dataset: Any, indices: list[int], depth: str, min_alpha: float
-                  ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-    """Per view ([H, W] camera z in the normalised frame, 0 = none; [H, W, 3] uint8 RGB) at full LOD."""
+def render_depths(model: Any, dataset: Any, indices: list[int], depth: str
+                  ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """Per view: [H, W] camera z in the normalised frame (0 = none), [H, W, 3] uint8 RGB and [H, W]
+    accumulated opacity, rendered at full LOD (step None)."""
     name = {"plane": "plane_depth", "expected": "depth"}[depth]
-    depths, colors = [], []
+    depths, colors, alphas = [], [], []
     for i in indices:
         out, _ = model.render(dataset.cameras[i], {name, "rgb", "alpha"}, step=None)
-        view_depth = getattr(out, name)[..., 0].float().cpu()
-        alpha = out.alpha[..., 0].float().cpu()
-        depths.append(torch.where(alpha >= min_alpha, view_depth, torch.zeros_like(view_depth)))
+        depths.append(getattr(out, name)[..., 0].float().cpu())
+        alphas.append(out.alpha[..., 0].float().cpu())
         colors.append((out.rgb[..., :3].float().clamp(0, 1) * 255).round().to(torch.uint8).cpu())
-    return depths, colors
+    return depths, colors, alphas
 
 
 def extract_mesh(model: Any, dataset: Any, config: MeshExportConfig) -> TriangleMesh:
@@ -95,7 +106,14 @@ def extract_mesh(model: Any, dataset: Any, config: MeshExportConfig) -> Triangle
     voxel = config.voxel_size * scale if config.voxel_size is not None else scene_extent(dataset) / 512
     trunc = config.sdf_trunc * scale if config.sdf_trunc is not None else 4 * voxel
     max_depth = config.max_depth * scale if config.max_depth is not None else dataset.camera_distance_range()[1]
-    depths, colors = render_depths(model, dataset, indices, config.depth, config.min_alpha)
+    depths, colors, alphas = render_depths(model, dataset, indices, config.depth)
+    if not any(bool((alpha >= config.min_alpha).any()) for alpha in alphas):
+        raise HicoError(f"mesh: no pixel of the {len(indices)} training views reaches opacity --min-alpha "
+                        f"{config.min_alpha} (highest {max(float(a.max()) for a in alphas):.3g}); is the run trained?")
+    depths = [torch.where(alpha >= config.min_alpha, d, torch.zeros_like(d)) for d, alpha in zip(depths, alphas)]
+    if not any(bool(((d > 0) & (d <= max_depth)).any()) for d in depths):
+        raise HicoError(f"mesh: no opaque pixel of the {len(indices)} training views has a {config.depth} depth in "
+                        f"(0, --max-depth {max_depth / scale:.4g}] (COLMAP units); raise --max-depth")
     cameras = _subset(dataset.cameras, indices)
     if config.depth_filter:
         if len({tuple(d.shape) for d in depths}) > 1:

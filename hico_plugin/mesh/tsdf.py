@@ -144,10 +144,17 @@ def fuse_tsdf(depths: Sequence[Tensor], colors: Sequence[Tensor], cameras: Camer
         depth_image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth.numpy())))
         color_image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(
             color.detach().cpu().numpy().astype(np.float32) / 255.0)))
-        blocks = grid.compute_unique_block_coordinates(depth_image, intrinsic, extrinsic, 1.0, float(max_depth),
-                                                       trunc_voxel_multiplier=trunc_multiplier)
+        try:
+            blocks = grid.compute_unique_block_coordinates(depth_image, intrinsic, extrinsic, 1.0, float(max_depth),
+                                                           trunc_voxel_multiplier=trunc_multiplier)
+        except RuntimeError as err:
+            if "No block is touched" in str(err):  # too few valid pixels in this view to touch a block
+                continue
+            raise
         grid.integrate(blocks, depth_image, color_image, intrinsic, intrinsic, extrinsic, 1.0, float(max_depth),
                        trunc_voxel_multiplier=trunc_multiplier)
+    if grid.hashmap().size() == 0:
+        return TriangleMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     mesh = grid.extract_triangle_mesh(weight_threshold=float(min_weight)).to_legacy()
     vertex_colors = np.asarray(mesh.vertex_colors)
     return TriangleMesh(
