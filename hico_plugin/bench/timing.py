@@ -36,13 +36,16 @@ def _sync(device: torch.device) -> None:
 
 
 class StageTimer:
-    """Accumulates seconds per stage over the steps it watched.
+    """Accumulates seconds per stage over the steps it watched, after ``warmup_steps`` (their
+    one-off costs, e.g. kernel compilation and allocator growth, would bias short runs).
 
-    ``totals``: stage -> summed seconds; ``steps``: number of ``train_step`` calls seen.
+    ``totals``: stage -> summed seconds; ``steps``: number of ``train_step`` calls counted.
     """
 
-    def __init__(self, device: torch.device | str = "cpu"):
+    def __init__(self, device: torch.device | str = "cpu", warmup_steps: int = 1):
         self.device = torch.device(device)
+        self.warmup_steps = warmup_steps
+        self._seen = 0
         self.totals = {stage: 0.0 for stage in STAGES}
         self.steps = 0
         self._stack: list[list[float]] = []  # per open stage: [start, seconds of nested stages]
@@ -127,6 +130,9 @@ class StageTimer:
         def timed(*args: Any, **kwargs: Any) -> Any:
             if self._paused:
                 return fn(*args, **kwargs)
+            if self._seen == self.warmup_steps:
+                self.reset()
+            self._seen += 1
             out = fn(*args, **kwargs)
             _sync(self.device)
             self.steps += 1
