@@ -54,7 +54,7 @@ def checkpoint_info(path: Path) -> dict[str, Any]:
 @torch.no_grad()
 def save_test_renders(run: LoadedRun, render_dir: Path) -> int:
     """Write the test views' render | ground truth, depth and normal PNGs; returns the view count."""
-    request = FrameRequest(("alpha", "depth", "normal", "rgb"))
+    request = FrameRequest(outputs=("alpha", "depth", "normal", "rgb"))
     options = {name: RenderOptions(output=name) for name in ("rgb", "depth", "normal")}
     indices = [int(i) for i in run.dataset.test_indices]
     for index in indices:

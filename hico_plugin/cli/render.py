@@ -31,13 +31,16 @@ OutputName = Literal["rgb", "depth", "plane-depth", "normal", "depth-normal", "n
 
 
 @dataclass(frozen=True)
-class FrameRequest:
-    """What ``HiCoModel.viewer_render`` should draw for every frame: the union of the outputs'
-    needs, at the model's own LOD with CLCA as trained."""
+class FrameRequest(RenderOptions):
+    """What ``HiCoModel.viewer_render`` should draw for every frame: several outputs at once, with
+    the viewer's defaults for everything else (the model's own LOD, CLCA as trained)."""
 
-    required_outputs: tuple[str, ...]
-    clca_enabled: bool = True
-    level_range: tuple[int, int] | None = None
+    outputs: tuple[str, ...] = ("rgb",)
+    """Render outputs (RenderOutputs field names) to produce."""
+
+    @property
+    def required_outputs(self) -> tuple[str, ...]:
+        return self.outputs
 
 
 @dataclass
@@ -95,7 +98,7 @@ def main(args: RenderArgs) -> Path:
     names = list(dict.fromkeys(args.outputs))
     options = {name: RenderOptions(output=name.replace("-", "_"), colormap=args.colormap,
                                    num_levels=run.model.field.grid.num_levels) for name in names}
-    request = FrameRequest(tuple(sorted({r for o in options.values() for r in o.required_outputs})))
+    request = FrameRequest(outputs=tuple(sorted({r for o in options.values() for r in o.required_outputs})))
     output_dir = args.output_dir or run.run_dir / "renders" / args.path
     videos = {name: Mp4Writer(output_dir / f"{name}.mp4", args.fps, cameras[0].width, cameras[0].height)
               for name in names} if len({(c.width, c.height) for c in cameras}) == 1 else {}

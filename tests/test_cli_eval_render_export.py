@@ -1,0 +1,172 @@
+"""hico-eval, hico-render and hico-export on one tiny trained run (built-in `tiny` scene, 2 steps),
+and their one-line errors for a missing config, a config that is not a run, and no checkpoint."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from hico_plugin.cli import evaluate as eval_cli
+from hico_plugin.cli import export as export_cli
+from hico_plugin.cli import render as render_cli
+from hico_plugin.cli.train import parse as parse_train
+from hico_plugin.cli.train import train
+from hico_plugin.engine import load_config, save_config
+from hico_plugin.export import load_trained_run, read_ply
+from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY
+from hico_plugin.viewer.options import RenderOptions
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    config = parse_train(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
+                          "--output-dir", str(out), "--model.eval-lpips", "none",
+                          "--model.renderer.no-use-compile"])
+    train(config)
+    return out
+
+
+def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsys):
+    trained = json.loads((run_dir / "eval.json").read_text())
+    (run_dir / "eval.json").unlink()
+    document = eval_cli.main(eval_cli.parse(["--load-config", str(run_dir / "config.yml"), "--render-dir", str(tmp_path)]))
+    assert json.loads((run_dir / "eval.json").read_text()) == document
+    assert set(document) == {"experiment_name", "method_name", "checkpoint", "results"}
+    assert document["method_name"] == "hico-gs-lite" and document["checkpoint"].endswith("step-000000002.ckpt")
+    results = document["results"]
+    for key in ("psnr", "psnr_std", "ssim", "fps", "num_anchors", "num_gaussians", "depth_abs_rel", "normal_error_deg"):
+        assert results[key] is not None, key
+    assert results["step"] == 2 and results["train_seconds"] == pytest.approx(trained["results"]["train_seconds"])
+    assert results["psnr"] == pytest.approx(trained["results"]["psnr"], abs=1e-4)  # the same model, the same views
+    printed = capsys.readouterr().out
+    assert "psnr" in printed and "renders: 2 test views" in printed
+    side_by_side = cv2.imread(str(tmp_path / "view_0000_rgb_gt.png"))
+    assert side_by_side.shape == (48, 128, 3)
+    assert (tmp_path / "view_0008_depth.png").is_file() and (tmp_path / "view_0008_normal.png").is_file()
+
+
+def test_render_orbit_writes_frames_and_videos(run_dir, tmp_path, capsys):
+    out = render_cli.main(render_cli.parse(["orbit", "--load-config", str(run_dir / "config.yml"), "--outputs", "rgb",
+                                            "depth-normal", "level", "--num-frames", "3", "--output-dir", str(tmp_path)]))
+    assert out == tmp_path
+    printed = capsys.readouterr().out
+    for name in ("rgb", "depth-normal", "level"):
+        frames = sorted((tmp_path / name).iterdir())
+        assert [f.name for f in frames] == ["00000.png", "00001.png", "00002.png"]
+        assert cv2.imread(str(frames[0])).shape == (48, 64, 3)
+        assert (tmp_path / f"{name}.mp4").is_file() or "no video writer" in printed
+    rgb = [cv2.imread(str(f)) for f in sorted((tmp_path / "rgb").iterdir())]
+    assert max(int(f.max()) for f in rgb) > 0 and not np.array_equal(rgb[0], rgb[1])  # something drawn, camera moved
+    assert not list(tmp_path.rglob(".*"))  # no temp files left
+
+
+def test_render_test_path_matches_the_model_render(run_dir, tmp_path):
+    render_cli.main(render_cli.parse(["test", "--load-config", str(run_dir / "config.yml"), "--output-dir",
+                                      str(tmp_path), "--scale", "0.5"]))
+    frames = sorted((tmp_path / "rgb").iterdir())
+    assert len(frames) == 2
+    run = load_trained_run(run_dir / "config.yml")
+    camera = run.dataset.cameras[int(run.dataset.test_indices[1])].scaled(0.5)
+    with torch.no_grad():
+        out, _ = run.model.render(camera, ("rgb",))
+    expected = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    picture = cv2.imread(str(frames[1]))[..., ::-1]
+    assert picture.shape == (24, 32, 3)
+    assert np.abs(picture.astype(int) - expected).max() <= 1
+
+
+def test_export_gaussians_in_colmap_frame_with_drops_counted(run_dir, tmp_path, capsys):
+    path = export_cli.main(export_cli.parse(["gaussians", "--load-config", str(run_dir / "config.yml"),
+                                             "--camera-index", "3", "--output", str(tmp_path / "g.ply")]))
+    rows = read_ply(path)
+    assert rows.dtype.names == INRIA_FIELDS
+    run = load_trained_run(run_dir / "config.yml")
+    with torch.no_grad():
+        _, gaussians = run.model.render(run.dataset.cameras[3], ("alpha",))
+    keep = gaussians.opacities >= MIN_OPACITY
+    expected = run.dataset.transform.points_to_colmap(gaussians.means[keep]).numpy()
+    np.testing.assert_allclose(np.stack([rows["x"], rows["y"], rows["z"]], -1), expected, rtol=1e-5, atol=1e-5)
+    log_scales = np.stack([rows[f"scale_{i}"] for i in range(3)], -1)
+    expected_scales = (gaussians.scales[keep] / run.dataset.transform.scale).log().numpy()
+    np.testing.assert_allclose(log_scales, expected_scales, rtol=1e-5, atol=1e-5)
+    normals = np.stack([rows["nx"], rows["ny"], rows["nz"]], -1)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-5)
+    printed = capsys.readouterr().out
+    assert f"wrote {len(rows)} of {len(gaussians)} decoded for view 3" in printed
+    assert f"opacity < 1/255 {int((~keep).sum())}" in printed
+
+
+def test_export_anchors_with_options_after_the_target(run_dir, tmp_path):
+    path = export_cli.main(export_cli.parse(["anchors", "--output", str(tmp_path / "a.ply"), "--load-config",
+                                             str(run_dir / "config.yml")]))
+    rows = read_ply(path)
+    run = load_trained_run(run_dir / "config.yml")
+    positions, levels = run.model.field.anchor_points()
+    assert len(rows) == len(positions)
+    np.testing.assert_array_equal(rows["level"], levels.numpy())
+    np.testing.assert_allclose(rows["x"], run.dataset.transform.points_to_colmap(positions)[:, 0].numpy(), rtol=1e-5)
+    np.testing.assert_allclose(rows["f_anchor_5"], run.model.field.anchor_features[:, 5].detach().numpy())
+    assert {"red", "green", "blue"} <= set(rows.dtype.names)
+
+
+def test_export_camera_index_out_of_range_is_one_line(run_dir, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        export_cli.entrypoint(["--load-config", str(run_dir / "config.yml"), "gaussians", "--camera-index", "99"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --camera-index: 99 is out of range") and "\n" not in err
+
+
+CLIS = {
+    "eval": (eval_cli.entrypoint, []),
+    "render": (render_cli.entrypoint, ["orbit", "--num-frames", "1"]),
+    "export": (export_cli.entrypoint, ["anchors"]),
+}
+
+
+def _error_of(cli: str, config_path, capsys) -> str:
+    entrypoint, extra = CLIS[cli]
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["--load-config", str(config_path), *extra])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize("cli", sorted(CLIS))
+def test_missing_config_file(cli, tmp_path, capsys):
+    err = _error_of(cli, tmp_path / "nope" / "config.yml", capsys)
+    assert "nope/config.yml is not a file" in err
+
+
+@pytest.mark.parametrize("cli", sorted(CLIS))
+def test_config_that_is_not_a_run(cli, tmp_path, capsys):
+    save_config(RenderOptions(), tmp_path / "config.yml")  # a valid config.yml of something else
+    assert "not a training run's config.yml" in _error_of(cli, tmp_path / "config.yml", capsys)
+    (tmp_path / "plain.yml").write_text("max_steps: 3\n")
+    assert "expected a config written by save_config" in _error_of(cli, tmp_path / "plain.yml", capsys)
+
+
+@pytest.mark.parametrize("cli", sorted(CLIS))
+def test_run_without_checkpoint(cli, run_dir, tmp_path, capsys):
+    config = load_config(run_dir / "config.yml")
+    config.output_dir = tmp_path / "elsewhere"
+    save_config(config, tmp_path / "config.yml")
+    assert "no checkpoint found" in _error_of(cli, tmp_path / "config.yml", capsys)
+
+
+def test_moved_run_finds_its_checkpoints_next_to_the_config(run_dir, tmp_path):
+    moved = tmp_path / "moved"
+    shutil.copytree(run_dir, moved, ignore=shutil.ignore_patterns("exports", "renders"))
+    config = load_config(moved / "config.yml")
+    config.output_dir = tmp_path / "gone"
+    save_config(config, moved / "config.yml")
+    run = load_trained_run(moved / "config.yml")
+    assert run.checkpoint == moved / "checkpoints" / "step-000000002.ckpt" and run.run_dir == moved
