@@ -35,7 +35,8 @@ def run_dir(tmp_path_factory):
 def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsys):
     trained = json.loads((run_dir / "eval.json").read_text())
     (run_dir / "eval.json").unlink()
-    document = eval_cli.main(eval_cli.parse(["--load-config", str(run_dir / "config.yml"), "--render-dir", str(tmp_path)]))
+    args = eval_cli.parse(["--load-config", str(run_dir / "config.yml"), "--render-dir", str(tmp_path)])
+    document = eval_cli.main(args)
     assert json.loads((run_dir / "eval.json").read_text()) == document
     assert set(document) == {"experiment_name", "method_name", "checkpoint", "results"}
     assert document["method_name"] == "hico-gs-lite" and document["checkpoint"].endswith("step-000000002.ckpt")
@@ -53,7 +54,8 @@ def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsy
 
 def test_render_orbit_writes_frames_and_videos(run_dir, tmp_path, capsys):
     out = render_cli.main(render_cli.parse(["orbit", "--load-config", str(run_dir / "config.yml"), "--outputs", "rgb",
-                                            "depth-normal", "level", "--num-frames", "3", "--output-dir", str(tmp_path)]))
+                                            "depth-normal", "level", "--num-frames", "3",
+                                            "--output-dir", str(tmp_path)]))
     assert out == tmp_path
     printed = capsys.readouterr().out
     for name in ("rgb", "depth-normal", "level"):

@@ -48,7 +48,8 @@ def test_ply_round_trip_keeps_every_type_and_value(tmp_path):
 def test_ply_empty_and_bad_files(tmp_path):
     empty = np.empty(0, dtype=[(name, "<f4") for name in INRIA_FIELDS])
     assert len(read_ply(write_ply(tmp_path / "empty.ply", empty))) == 0
-    (tmp_path / "ascii.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1.0\n")
+    ascii_ply = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1.0\n"
+    (tmp_path / "ascii.ply").write_bytes(ascii_ply)
     with pytest.raises(HicoError, match="binary_little_endian"):
         read_ply(tmp_path / "ascii.ply")
     data = (tmp_path / "empty.ply").read_bytes().replace(b"vertex 0", b"vertex 2")
@@ -92,7 +93,8 @@ def test_inria_rows_drop_and_count_bad_rows_and_round_trip(tmp_path):
     np.testing.assert_allclose(f_dc * SH_C0 + 0.5, colors[keep].numpy(), atol=1e-6)
     np.testing.assert_allclose(1 / (1 + np.exp(-back["opacity"])), opacities[keep].numpy(), atol=1e-6)
     assert np.isfinite(back["opacity"]).all() and back["opacity"][0] > 10
-    np.testing.assert_allclose(np.exp(np.stack([back[f"scale_{i}"] for i in range(3)], -1)), scales[keep].numpy(), rtol=1e-5)
+    log_scales = np.stack([back[f"scale_{i}"] for i in range(3)], -1)
+    np.testing.assert_allclose(np.exp(log_scales), scales[keep].numpy(), rtol=1e-5)
     rot = np.stack([back[f"rot_{i}"] for i in range(4)], -1)
     expected = torch.nn.functional.normalize(quats[keep], dim=-1).numpy()
     np.testing.assert_allclose(rot, expected, atol=1e-6)
@@ -122,7 +124,8 @@ def test_anchor_rows_hold_positions_levels_features_colours():
 
 
 def _random_rotations(n: int, seed: int = 0) -> torch.Tensor:
-    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(seed), dtype=torch.float64), dim=-1)
+    g = torch.Generator().manual_seed(seed)
+    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=torch.float64), dim=-1)
     return quat_to_rotmat(q)
 
 
@@ -190,7 +193,8 @@ def test_interpolate_passes_through_the_cameras():
     mid = path.centers[1]
     torch.testing.assert_close(mid, (ring.centers[0] + ring.centers[1]) / 2, atol=1e-5, rtol=0)
     rot = path.viewmats[:, :3, :3].double()
-    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(7, 3, 3), atol=1e-6, rtol=0)
+    identity = torch.eye(3, dtype=torch.float64).expand(7, 3, 3)
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), identity, atol=1e-6, rtol=0)
     single = Cameras(ring.viewmats[:1], ring.Ks[:1], ring.widths[:1], ring.heights[:1])
     torch.testing.assert_close(interpolate_path(single, 3).viewmats, ring.viewmats[:1].expand(3, 4, 4))
     with pytest.raises(HicoError, match="frames"):

@@ -1,7 +1,8 @@
-"""``hico-export --load-config RUN/config.yml {gaussians|anchors} [...]``: PLY files of a trained run.
+"""``hico-export --load-config RUN/config.yml {gaussians|anchors|mesh} [...]``: PLY files of a trained run.
 
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml gaussians --camera-index 3
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml anchors --output anchors.ply
+    hico-export --load-config outputs/city-block/hico-gs-lite/config.yml mesh --depth-filter
 
 Each target is a dataclass with ``run(run)``; adding one (e.g. ``mesh``) is one more entry in
 ``Target``. Run options may stand before or after the target name. Outputs are in COLMAP's frame.
@@ -28,6 +29,7 @@ from hico_plugin.export import (
     load_trained_run,
     write_ply,
 )
+from hico_plugin.mesh import MeshExportConfig
 from hico_plugin.viewer.visualize import level_colors
 
 
@@ -44,7 +46,8 @@ class ExportGaussians:
     def run(self, run: LoadedRun) -> Path:
         model, dataset = run.model, run.dataset
         if not 0 <= self.camera_index < len(dataset.cameras):
-            raise HicoError(f"--camera-index: {self.camera_index} is out of range (the run has views 0..{len(dataset.cameras) - 1})")
+            raise HicoError(f"--camera-index: {self.camera_index} is out of range "
+                            f"(the run has views 0..{len(dataset.cameras) - 1})")
         _, gaussians = model.render(dataset.cameras[self.camera_index], ("alpha",))
         camera = dataset.cameras[self.camera_index].to(gaussians.means.device)
         normals = facing_normals(gaussians.means, gaussians.quats, gaussians.scales, camera.center)
@@ -74,13 +77,15 @@ class ExportAnchors:
         path = self.output or run.run_dir / "exports" / "anchors.ply"
         write_ply(path, rows)
         counts = torch.bincount(levels.cpu(), minlength=field.grid.num_levels).tolist()
-        print(f"anchors: wrote {len(rows)} anchors (per level {counts}, {field.anchor_features.shape[1]} features) to {path}")
+        print(f"anchors: wrote {len(rows)} anchors (per level {counts}, "
+              f"{field.anchor_features.shape[1]} features) to {path}")
         return path
 
 
 Target = Union[
     Annotated[ExportGaussians, tyro.conf.subcommand("gaussians")],
     Annotated[ExportAnchors, tyro.conf.subcommand("anchors")],
+    Annotated[MeshExportConfig, tyro.conf.subcommand("mesh")],
 ]
 
 
@@ -98,7 +103,9 @@ class ExportArgs:
 
 
 def parse(args: Sequence[str]) -> ExportArgs:
-    return tyro.cli(ExportArgs, args=list(args), prog="hico-export", config=(tyro.conf.CascadeSubcommandArgs, tyro.conf.OmitSubcommandPrefixes))
+    # Cascade: run options may follow the target name; no "target:" prefix on the target names.
+    return tyro.cli(ExportArgs, args=list(args), prog="hico-export",
+                    config=(tyro.conf.CascadeSubcommandArgs, tyro.conf.OmitSubcommandPrefixes))
 
 
 def main(args: ExportArgs) -> Path:

@@ -23,7 +23,7 @@ from hico_plugin.cli import run_cli
 from hico_plugin.errors import HicoError
 from hico_plugin.export import interpolate_path, load_trained_run, orbit_path
 from hico_plugin.export.frames import Mp4Writer, write_png
-from hico_plugin.viewer.options import COLORMAP_NAMES, REQUIRED_OUTPUTS, RenderOptions
+from hico_plugin.viewer.options import COLORMAP_NAMES, RenderOptions
 from hico_plugin.viewer.visualize import visualize
 
 OutputName = Literal["rgb", "depth", "plane-depth", "normal", "depth-normal", "normal-disagreement",
@@ -94,7 +94,7 @@ def main(args: RenderArgs) -> Path:
     if args.scale <= 0 or args.fps <= 0:
         raise HicoError(f"--scale / --fps: expected > 0, got {args.scale} / {args.fps}")
     run = load_trained_run(args.load_config, args.checkpoint, args.device)
-    cameras = [c.scaled(args.scale) if args.scale != 1.0 else c for c in path_cameras(run.dataset, args.path, args.num_frames)]
+    cameras = [c.scaled(args.scale) for c in path_cameras(run.dataset, args.path, args.num_frames)]
     names = list(dict.fromkeys(args.outputs))
     options = {name: RenderOptions(output=name.replace("-", "_"), colormap=args.colormap,
                                    num_levels=run.model.field.grid.num_levels) for name in names}

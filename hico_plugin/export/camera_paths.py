@@ -136,9 +136,10 @@ def interpolate_path(cameras: Cameras, num_frames: int) -> Cameras:
     rotations slerped, intrinsics lerped (all at the first camera's size); the first and last
     frames are the first and last cameras."""
     if num_frames < 1 or len(cameras) == 0:
-        raise HicoError(f"interpolate: expected >= 1 frame and >= 1 camera, got {num_frames} frames, {len(cameras)} cameras")
+        raise HicoError(f"interpolate: expected >= 1 frame and >= 1 camera, "
+                        f"got {num_frames} frames, {len(cameras)} cameras")
     count = len(cameras)
-    t = torch.linspace(0, count - 1, num_frames, dtype=torch.float64) if num_frames > 1 else torch.zeros(1, dtype=torch.float64)
+    t = torch.linspace(0, count - 1, num_frames, dtype=torch.float64)  # key i sits at t = i
     start = t.floor().long().clamp(max=max(count - 2, 0))
     end = (start + 1).clamp(max=count - 1)
     u = t - start

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -52,7 +51,8 @@ class Mp4Writer:
         if not self.available:
             return
         if (frame.shape[1], frame.shape[0]) != self.size:
-            raise ValueError(f"{self.path}: frame of {frame.shape[1]}x{frame.shape[0]}, the video is {self.size[0]}x{self.size[1]}")
+            raise ValueError(f"{self.path}: frame of {frame.shape[1]}x{frame.shape[0]}, "
+                             f"the video is {self.size[0]}x{self.size[1]}")
         self._writer.write(np.ascontiguousarray(frame[..., ::-1]))
         self.count += 1
 

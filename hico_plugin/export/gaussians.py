@@ -87,7 +87,8 @@ def inria_vertices(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tens
     return rows, DroppedRows(int(keep.sum()), int(non_finite.sum()), int(zero_quat.sum()), int(transparent.sum()))
 
 
-def anchor_vertices(positions: Tensor, levels: Tensor, features: Tensor, colors: np.ndarray | None = None) -> np.ndarray:
+def anchor_vertices(positions: Tensor, levels: Tensor, features: Tensor,
+                    colors: np.ndarray | None = None) -> np.ndarray:
     """Anchor rows: x y z (float), level (int), f_anchor_0..D-1 (float) and, when ``colors`` [N, 3]
     uint8 is given, red green blue (so point-cloud viewers show the levels).
 
