@@ -1,0 +1,115 @@
+"""hico-bench: quick matrix on the tiny scene (2 presets x 2 tiny budgets), caching, report, compare;
+hico-analyze on the runs it trained."""
+
+import json
+import shutil
+import sys
+
+import pytest
+
+from hico_plugin.bench import BenchConfig, compare_results, load_results, pareto_front, write_outputs
+from hico_plugin.bench.timing import STAGES
+from hico_plugin.cli import analyze as analyze_cli
+from hico_plugin.cli import bench as bench_cli
+from hico_plugin.errors import HicoError
+
+ARGS = ["--quick", "--presets", "octree-gs", "hico-gs", "--budgets", "1", "3", "--max-eval-views", "1"]
+
+
+@pytest.fixture(scope="module")
+def bench_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    bench_cli.entrypoint(ARGS + ["--output-dir", str(out)])
+    return out
+
+
+def test_quick_matrix_records_every_cell(bench_dir):
+    results = load_results(bench_dir)
+    cells = results["cells"]
+    assert {(c["preset"], c["scene"], c["budget"]) for c in cells} == {
+        (p, "tiny", b) for p in ("octree-gs", "hico-gs") for b in (1, 3)}
+    for cell in cells:
+        assert cell["psnr"] > 5 and 0 < cell["ssim"] <= 1 and cell["lpips"] is None  # quick skips LPIPS
+        assert cell["normal_error_deg"] is not None and cell["depth_abs_rel"] is not None  # tiny has GT
+        assert cell["num_anchors"] > 0 and cell["num_gaussians"] > 0 and cell["fps"] > 0
+        assert cell["max_steps"] == 3 and cell["wall_seconds"] > 0
+        assert set(cell["stage_ms"]) == set(STAGES)
+        assert cell["step_ms"] == pytest.approx(sum(cell["stage_ms"].values()))
+    final = {c["preset"]: c for c in cells if c["budget"] == 3}
+    for stage in ("lod_select", "decode", "rasterize", "losses", "backward", "optimizer"):
+        assert final["hico-gs"]["stage_ms"][stage] > 0
+    assert final["hico-gs"]["stage_ms"]["clca"] > 0  # CLCA runs its MLP
+    assert final["octree-gs"]["stage_ms"]["clca"] < 0.2 * final["hico-gs"]["stage_ms"]["clca"]  # identity
+    nested_wall = sorted(c["wall_seconds"] for c in cells if c["preset"] == "hico-gs")
+    assert nested_wall[0] < nested_wall[1]  # checkpoints of one run
+
+
+def test_report_contents(bench_dir):
+    report = (bench_dir / "report.md").read_text()
+    assert "## Ablation" in report and "| method | tiny PSNR | train time (s) | ms / step |" in report
+    assert "## Accuracy vs time" in report and "★" in report
+    assert "## Where a training step's time goes" in report and "| clca |" in report
+    assert "CLCA + DNGC (hico-gs)" in report
+    cells = load_results(bench_dir)["cells"]
+    assert f"{cells[0]['psnr']:.2f}" in report
+    for name in ("psnr_vs_time.png", "normal_vs_time.png", "stage_breakdown.png"):
+        assert (bench_dir / name).stat().st_size > 1000 and f"({name})" in report
+
+
+def test_second_invocation_reruns_nothing(bench_dir, capsys, monkeypatch):
+    stamps = {p: p.stat().st_mtime_ns for p in (bench_dir / "cells").iterdir()}
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a cached cell was trained again")
+
+    monkeypatch.setattr("hico_plugin.engine.trainer.Trainer.train", no_training)
+    bench_cli.entrypoint(ARGS + ["--output-dir", str(bench_dir)])
+    assert "2 runs, 2 cached, 0 to train" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in (bench_dir / "cells").iterdir()} == stamps
+
+
+def test_compare(bench_dir, tmp_path, capsys):
+    other = tmp_path / "other.json"
+    document = load_results(bench_dir)
+    for cell in document["cells"]:
+        cell["psnr"] += 1.0
+    other.write_text(json.dumps(document))
+    bench_cli.entrypoint(["compare", str(bench_dir), str(other)])
+    out = capsys.readouterr().out
+    assert out.count("(+1.00)") == 4 and "4 cells matched" in out
+    assert "No cell" in compare_results({"cells": []}, document)
+
+
+def test_pareto_front():
+    points = [(1.0, 10.0), (2.0, 12.0), (3.0, 11.0), (2.0, 12.0), (0.5, 5.0)]
+    assert pareto_front(points) == [True, True, False, True, True]
+
+
+def test_report_without_matplotlib(bench_dir, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    write_outputs(BenchConfig(), load_results(bench_dir)["cells"], tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "tables only" in report and "![" not in report and not list(tmp_path.glob("*.png"))
+
+
+def test_bad_input_is_one_line(tmp_path, capsys):
+    with pytest.raises(HicoError, match="--presets"):
+        BenchConfig(presets=("nope",)).resolved()
+    with pytest.raises(SystemExit) as exit_info:
+        bench_cli.entrypoint(["compare", str(tmp_path / "missing.json"), str(tmp_path)])
+    assert exit_info.value.code == 2 and "results.json" in capsys.readouterr().err
+
+
+def test_analyze_bench_runs(bench_dir, tmp_path, capsys):
+    runs = sorted((bench_dir / "runs" / "tiny").iterdir())
+    analyze_cli.entrypoint([str(r) for r in runs] + ["--output-dir", str(tmp_path), "--no-tsne"])
+    docs = {d["method"]: d for d in (json.loads(p.read_text()) for p in tmp_path.glob("run_*/analysis.json"))}
+    assert docs["octree-gs"]["f_hat"] is None and docs["hico-gs"]["f_hat"] is not None
+    levels = len(docs["hico-gs"]["anchors_per_level"])
+    assert len(docs["hico-gs"]["f"]["distance"]) == levels and len(docs["hico-gs"]["f_hat"]["adjacent"]) == levels - 1
+    comparison = json.loads((tmp_path / "compare.json").read_text())
+    assert [r["features"] for r in comparison["runs"]] == ["f_hat", "f"]
+    assert (tmp_path / "compare_adjacent.png").is_file()
+    with pytest.raises(SystemExit):
+        analyze_cli.entrypoint([str(tmp_path)])
+    assert "not a training run" in capsys.readouterr().err
