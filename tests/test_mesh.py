@@ -12,8 +12,9 @@ import torch
 from hico_plugin.data import ColmapDataParserConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.mesh import (MeshExportConfig, TriangleMesh, clean_mesh, evaluate_surface, extract_mesh, fuse_tsdf,
-                              multiview_depth_filter, read_ply, sample_surface, write_ply)
+                              multiview_depth_filter, read_ply, sample_surface, surface_results, write_ply)
 from hico_plugin.mesh.extract import scene_extent
+from hico_plugin.metrics.geometry import gt_spacing_threshold
 from hico_plugin.rasterizer.base import RenderOutputs
 from hico_plugin.scenes.generate import generate_scene
 
@@ -123,6 +124,13 @@ def test_extract_mesh_writes_a_colmap_frame_ply(tiny, tmp_path):
     metrics = evaluate_surface(again, gt_colmap)
     assert metrics.f1 > 0.9, metrics
     assert not list(path.parent.glob(".*tmp"))  # atomic write left no temporary file
+    # hico-eval's entries: the same protocol on the file, against the whole ground truth.
+    results = surface_results(tiny, path)
+    assert set(results) == {"surface_precision", "surface_recall", "surface_f1", "surface_chamfer", "surface_tau"}
+    assert results["surface_tau"] == pytest.approx(gt_spacing_threshold(tiny.transform.points_to_colmap(
+        tiny.gt_surface_points.double())))
+    assert 0.8 < results["surface_f1"] <= metrics.f1 + 0.02 and results["surface_precision"] > 0.9
+    assert surface_results(tiny, tmp_path / "missing.ply") == {}
 
 
 @needs_open3d

@@ -10,10 +10,11 @@ Public API::
     multiview_depth_filter(depths [C, H, W], cameras, ...) -> [C, H, W] bool
     clean_mesh(mesh, min_component_triangles) -> TriangleMesh
     evaluate_surface(mesh, gt_points [M, 3]) -> SurfaceMetrics                     # tau = 1.5 x GT spacing
+    surface_results(dataset, mesh_path) -> dict   # hico-eval: surface_precision/recall/f1/chamfer/tau
     write_ply(path, mesh) / read_ply(path)
 """
 
-from hico_plugin.mesh.evaluate import evaluate_surface, sample_surface
+from hico_plugin.mesh.evaluate import evaluate_surface, sample_surface, surface_results
 from hico_plugin.mesh.extract import MeshExportConfig, extract_mesh
 from hico_plugin.mesh.mesh import TriangleMesh, clean_mesh, read_ply, write_ply
 from hico_plugin.mesh.tsdf import fuse_tsdf, multiview_depth_filter
@@ -28,5 +29,6 @@ __all__ = [
     "multiview_depth_filter",
     "read_ply",
     "sample_surface",
+    "surface_results",
     "write_ply",
 ]

@@ -4,12 +4,15 @@ ground-truth nearest-neighbour spacing, plus chamfer distance."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from hico_plugin.errors import HicoError
-from hico_plugin.mesh.mesh import TriangleMesh
+from hico_plugin.mesh.mesh import TriangleMesh, read_ply
 from hico_plugin.metrics.geometry import SurfaceMetrics, gt_spacing_threshold, surface_metrics
 
 
@@ -44,3 +47,16 @@ def evaluate_surface(mesh: TriangleMesh, gt_points: Tensor | np.ndarray, spacing
     samples = sample_surface(mesh, count, seed)
     tau = gt_spacing_threshold(gt, spacing_factor)
     return surface_metrics(torch.from_numpy(samples), gt, tau)
+
+
+def surface_results(dataset: Any, mesh_path: str | Path) -> dict[str, float]:
+    """hico-eval's surface entries for the mesh file ``mesh_path`` (COLMAP frame, as hico-export
+    writes it) against ``dataset.gt_surface_points``: ``surface_precision``, ``surface_recall``,
+    ``surface_f1``, ``surface_chamfer`` and ``surface_tau`` (distances in COLMAP units). Empty when
+    the dataset has no ground-truth surface or the file does not exist."""
+    gt = dataset.gt_surface_points
+    if gt is None or not Path(mesh_path).is_file():
+        return {}
+    metrics = evaluate_surface(read_ply(mesh_path), dataset.transform.points_to_colmap(gt.double()))
+    return {"surface_precision": metrics.precision, "surface_recall": metrics.recall, "surface_f1": metrics.f1,
+            "surface_chamfer": metrics.chamfer, "surface_tau": metrics.threshold}
