@@ -11,6 +11,7 @@ import torch
 
 from scipy.spatial import cKDTree
 
+from hico_plugin.cli import evaluate as eval_cli
 from hico_plugin.cli import export as export_cli
 from hico_plugin.cli.train import parse as parse_train
 from hico_plugin.cli.train import train
@@ -55,3 +56,18 @@ def test_export_mesh_errors_are_one_line(run_dir, capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: mesh: no opaque pixel") and "--max-depth 1e-06" in err and "\n" not in err
+
+
+def test_eval_adds_surface_metrics_of_the_exported_mesh(run_dir, capsys):
+    config = str(run_dir / "config.yml")
+    path = export_cli.main(export_cli.parse(["--load-config", config, "mesh", "--min-alpha", "0",
+                                             "--min-component-triangles", "10"]))
+    assert path == run_dir / "exports" / "mesh.ply"
+    results = eval_cli.main(eval_cli.parse(["--load-config", config]))["results"]
+    for key in ("surface_precision", "surface_recall", "surface_f1", "surface_chamfer", "surface_tau"):
+        assert results[key] is not None, key
+    assert 0 <= results["surface_f1"] <= 1 and results["surface_chamfer"] > 0
+    assert "surface_f1" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        eval_cli.entrypoint(["--load-config", config, "--mesh", str(run_dir / "missing.ply")])
+    assert capsys.readouterr().err.strip().startswith("error: --mesh:")

@@ -24,6 +24,7 @@ from hico_plugin.engine.data import load_view
 from hico_plugin.errors import HicoError
 from hico_plugin.export import LoadedRun, load_trained_run
 from hico_plugin.export.frames import write_png
+from hico_plugin.mesh.evaluate import surface_results
 from hico_plugin.viewer.options import RenderOptions
 from hico_plugin.viewer.visualize import visualize
 
@@ -43,6 +44,9 @@ class EvalArgs:
     <name>_normal.png here."""
     device: str | None = None
     """Device to evaluate on (default: the run's)."""
+    mesh: Path | None = None
+    """Mesh scored against the scene's ground-truth surface when it has one (P / R / F1 / chamfer);
+    default RUN/exports/mesh.ply (hico-export ... mesh) when it exists."""
 
 
 def checkpoint_info(path: Path) -> dict[str, Any]:
@@ -76,6 +80,9 @@ def main(args: EvalArgs) -> dict[str, Any]:
     device = run.model.background.device
     results = evaluate(run.model, run.dataset, indices, device)
     results.update(checkpoint_info(run.checkpoint))
+    if args.mesh is not None and not args.mesh.is_file():
+        raise HicoError(f"--mesh: {args.mesh} is not a file (expected a PLY written by hico-export ... mesh)")
+    results.update(surface_results(run.dataset, args.mesh or run.run_dir / "exports" / "mesh.ply"))
     output_path = args.output_path or run.run_dir / "eval.json"
     write_eval_json(output_path, run.config.experiment_name, run.config.method_name, str(run.checkpoint), results)
     for key, value in results.items():
