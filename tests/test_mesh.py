@@ -11,8 +11,19 @@ import torch
 
 from hico_plugin.data import ColmapDataParserConfig
 from hico_plugin.errors import HicoError
-from hico_plugin.mesh import (MeshExportConfig, TriangleMesh, clean_mesh, evaluate_surface, extract_mesh, fuse_tsdf,
-                              multiview_depth_filter, read_ply, sample_surface, surface_results, write_ply)
+from hico_plugin.mesh import (
+    MeshExportConfig,
+    TriangleMesh,
+    clean_mesh,
+    evaluate_surface,
+    extract_mesh,
+    fuse_tsdf,
+    multiview_depth_filter,
+    read_ply,
+    sample_surface,
+    surface_results,
+    write_ply,
+)
 from hico_plugin.mesh.extract import scene_extent
 from hico_plugin.metrics.geometry import gt_spacing_threshold
 from hico_plugin.rasterizer.base import RenderOutputs

@@ -8,7 +8,6 @@ import importlib.util
 import numpy as np
 import pytest
 import torch
-
 from scipy.spatial import cKDTree
 
 from hico_plugin.cli import evaluate as eval_cli

@@ -40,7 +40,7 @@ def evaluate_surface(mesh: TriangleMesh, gt_points: Tensor | np.ndarray, spacing
     ``num_samples`` points are drawn over the mesh's area (default ``N_vertices + N_faces``, as
     CityGaussianV2); tau = ``spacing_factor`` x the mean ground-truth nearest-neighbour spacing.
     """
-    gt = gt_points.detach().cpu().double().numpy() if isinstance(gt_points, Tensor) else np.asarray(gt_points, np.float64)
+    gt = gt_points.detach().cpu().double().numpy() if isinstance(gt_points, Tensor) else np.asarray(gt_points)
     count = len(mesh.vertices) + len(mesh.faces) if num_samples is None else int(num_samples)
     if count < 1:
         raise HicoError(f"surface metrics: the mesh is empty ({len(mesh.vertices)} vertices, {len(mesh.faces)} faces)")

@@ -46,7 +46,7 @@ class MeshExportConfig(InstantiateConfig):
     min_component_triangles: int = 1000
     """Connected components with fewer triangles are removed (floaters)."""
 
-    def setup(self, **kwargs: Any) -> "MeshExportConfig":
+    def setup(self, **kwargs: Any) -> MeshExportConfig:
         return self
 
     def export(self, model: Any, dataset: Any, run_dir: Path) -> Path:
@@ -75,7 +75,8 @@ def scene_extent(dataset: Any) -> float:
     centres when there are too few points)."""
     points = dataset.points if len(dataset.points) >= 10 else dataset.cameras.centers
     points = points.to(torch.float64)
-    box = torch.quantile(points[:: max(1, len(points) // 1_000_000)], torch.tensor([0.01, 0.99], dtype=torch.float64), dim=0)
+    percentiles = torch.tensor([0.01, 0.99], dtype=torch.float64)
+    box = torch.quantile(points[:: max(1, len(points) // 1_000_000)], percentiles, dim=0)  # quantile's size limit
     extent = float((box[1] - box[0]).norm())
     if not extent > 0:
         raise HicoError("mesh: cannot derive a voxel size from the scene (its points span no volume); set --voxel-size")

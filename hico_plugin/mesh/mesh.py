@@ -42,7 +42,7 @@ class TriangleMesh:
         a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
         return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=-1)
 
-    def subset(self, keep_faces: np.ndarray) -> "TriangleMesh":
+    def subset(self, keep_faces: np.ndarray) -> TriangleMesh:
         """The faces where ``keep_faces`` ([F] bool) holds, with the vertices they reference only."""
         faces = self.faces[keep_faces]
         used = np.zeros(len(self.vertices), dtype=bool)
@@ -120,7 +120,7 @@ def read_ply(path: str | Path) -> TriangleMesh:
         raise HicoError(f"{path}: mesh file not found")
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as err:  # trimesh raises many types for malformed files
+    except Exception as err:  # noqa: BLE001 - trimesh raises many types for malformed files
         raise HicoError(f"{path}: unreadable mesh file ({err})") from None
     colors = None
     visual = getattr(loaded, "visual", None)

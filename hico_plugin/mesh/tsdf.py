@@ -7,7 +7,7 @@ Depths are camera z (OpenCV axes) in the cameras' world units; 0 (or non-finite)
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
