@@ -126,8 +126,9 @@ def fuse_tsdf(depths: Sequence[Tensor], colors: Sequence[Tensor], cameras: Camer
                         f"max_depth={max_depth:.4g}]: the depths are empty or all too far (raise max_depth?)")
     o3d = import_open3d()
     o3c = o3d.core
-    # The hashed voxel-block TSDF (Open3D's scalable volume; its legacy ScalableTSDFVolume integrates
-    # nothing in the 0.20 CPU wheel, so the maintained tensor API is used). The block map grows as needed.
+    # Open3D's hashed voxel-block TSDF, the maintained successor of ScalableTSDFVolume: with Open3D 0.20
+    # (CPU and CUDA wheels alike) the legacy volume extracted an empty mesh even for a flat wall in front
+    # of the camera. The block map grows as needed.
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
         attr_channels=(1, 1, 3), voxel_size=float(voxel_size), block_resolution=8, block_count=50_000,
