@@ -78,6 +78,8 @@ def main(args: EvalArgs) -> dict[str, Any]:
     if not indices:
         raise HicoError(f"{args.load_config}: the run's dataset has no test views to evaluate")
     device = run.model.background.device
+    with torch.no_grad():  # untimed warm-up: the first render compiles the rasterizer's kernels
+        run.model.render(run.dataset.cameras[indices[0]], ("rgb",))
     results = evaluate(run.model, run.dataset, indices, device)
     results.update(checkpoint_info(run.checkpoint))
     if args.mesh is not None and not args.mesh.is_file():
