@@ -228,3 +228,10 @@ def test_png_and_mp4_writers(tmp_path):
     assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 5
     capture.release()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f", "v.mp4"]
+    odd = Mp4Writer(tmp_path / "odd.mp4", 10, 21, 15)
+    odd.write(np.full((15, 21, 3), 100, np.uint8))
+    assert odd.close()
+    capture = cv2.VideoCapture(str(tmp_path / "odd.mp4"))
+    ok, frame = capture.read()
+    capture.release()
+    assert ok and frame.shape == (16, 22, 3)  # padded to even, nothing cut off

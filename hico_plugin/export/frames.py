@@ -42,7 +42,9 @@ class Mp4Writer:
     def __init__(self, path: str | os.PathLike, fps: float, width: int, height: int):
         self.path = Path(path)
         self._tmp = _temp_next_to(self.path)
-        self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
+        # MPEG-4 codes even sizes only; an odd last row / column is repeated rather than cut off.
+        self._padded = (width + width % 2, height + height % 2)
+        self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self._padded)
         self.available = self._writer.isOpened()
         self.size = (width, height)
         self.count = 0
@@ -53,7 +55,8 @@ class Mp4Writer:
         if (frame.shape[1], frame.shape[0]) != self.size:
             raise ValueError(f"{self.path}: frame of {frame.shape[1]}x{frame.shape[0]}, "
                              f"the video is {self.size[0]}x{self.size[1]}")
-        self._writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        pad = ((0, self._padded[1] - self.size[1]), (0, self._padded[0] - self.size[0]), (0, 0))
+        self._writer.write(np.ascontiguousarray(np.pad(frame[..., ::-1], pad, mode="edge")))
         self.count += 1
 
     def close(self) -> bool:
