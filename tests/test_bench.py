@@ -113,3 +113,16 @@ def test_analyze_bench_runs(bench_dir, tmp_path, capsys):
     with pytest.raises(SystemExit):
         analyze_cli.entrypoint([str(tmp_path)])
     assert "not a training run" in capsys.readouterr().err
+
+
+def test_plan_nested_vs_separate(tmp_path):
+    from hico_plugin.bench.matrix import plan
+
+    base = BenchConfig(presets=("hico-gs",), scenes=("tiny",), budgets=(2, 5), output_dir=tmp_path).resolved()
+    nested = plan(base)
+    assert len(nested) == 1 and nested[0]["max_steps"] == 5 and sorted(nested[0]["cells"]) == [2, 5]
+    separate = plan(BenchConfig(**{**base.__dict__, "schedule": "separate"}))
+    assert [r["max_steps"] for r in separate] == [2, 5]
+    # Schedules scale with max_steps, so a budget-2 cell of a 5-step run is a different cell.
+    assert separate[0]["cells"][2] != nested[0]["cells"][2]
+    assert all(r["todo"] for r in nested + separate)

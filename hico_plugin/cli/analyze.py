@@ -12,6 +12,7 @@ from typing import Sequence
 import tyro
 
 from hico_plugin.cli import run_cli
+from hico_plugin.errors import HicoError
 
 
 @dataclass
@@ -33,6 +34,8 @@ class AnalyzeArgs:
 def analyze(args: AnalyzeArgs) -> None:
     from hico_plugin.bench.analysis_report import analyze_run, compare_runs
 
+    if not args.runs:
+        raise HicoError("hico-analyze: expected at least one training run directory")
     documents = []
     for number, run in enumerate(args.runs):
         doc = analyze_run(run, args.output_dir / f"run_{number}_{Path(run).name}", args.per_level,
