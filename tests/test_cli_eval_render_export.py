@@ -19,6 +19,8 @@ from hico_plugin.cli.train import train
 from hico_plugin.engine import load_config, save_config
 from hico_plugin.export import load_trained_run, read_ply
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
+from hico_plugin.mesh.mesh import TriangleMesh
+from hico_plugin.mesh.mesh import write_ply as write_mesh
 from hico_plugin.viewer.options import RenderOptions
 
 
@@ -50,6 +52,23 @@ def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsy
     side_by_side = cv2.imread(str(tmp_path / "view_0000_rgb_gt.png"))
     assert side_by_side.shape == (48, 128, 3)
     assert (tmp_path / "view_0008_depth.png").is_file() and (tmp_path / "view_0008_normal.png").is_file()
+
+
+def test_eval_scores_a_mesh_against_the_ground_truth_surface(run_dir, tmp_path, capsys):
+    run = load_trained_run(run_dir / "config.yml")
+    gt = run.dataset.transform.points_to_colmap(run.dataset.gt_surface_points.double()).numpy()
+    # A mesh of tiny triangles at the ground-truth points: it lies on the true surface.
+    corners = gt[:, None, :] + np.array([[0.0, 0, 0], [1e-4, 0, 0], [0, 1e-4, 0]])
+    mesh = TriangleMesh(corners.reshape(-1, 3), np.arange(len(gt) * 3).reshape(-1, 3))
+    write_mesh(tmp_path / "mesh.ply", mesh)
+    args = eval_cli.parse(["--load-config", str(run_dir / "config.yml"), "--mesh", str(tmp_path / "mesh.ply"),
+                           "--output-path", str(tmp_path / "eval.json")])
+    results = eval_cli.main(args)["results"]
+    assert results["surface_precision"] > 0.95 and results["surface_recall"] > 0.95
+    assert results["surface_f1"] > 0.95 and results["surface_chamfer"] < results["surface_tau"]
+    with pytest.raises(SystemExit):
+        eval_cli.entrypoint(["--load-config", str(run_dir / "config.yml"), "--mesh", str(tmp_path / "none.ply")])
+    assert "--mesh: " in capsys.readouterr().err
 
 
 def test_render_orbit_writes_frames_and_videos(run_dir, tmp_path, capsys):

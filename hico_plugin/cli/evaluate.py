@@ -1,8 +1,9 @@
 """``hico-eval --load-config RUN/config.yml [--checkpoint PATH] [--render-dir DIR]``.
 
 Evaluates the run on its test views (the engine's ``evaluate``, as at the end of training) and
-rewrites RUN/eval.json in nerfstudio's ns-eval layout; ``--render-dir`` also saves, per test view,
-the render beside the ground truth and the depth and normal maps.
+rewrites RUN/eval.json in nerfstudio's ns-eval layout, with surface metrics when a mesh exists and
+the scene has a ground-truth surface; ``--render-dir`` also saves, per test view, the render beside
+the ground truth and the depth and normal maps.
 """
 
 from __future__ import annotations
