@@ -2,12 +2,17 @@
 hico-analyze on the runs it trained."""
 
 import json
-import shutil
 import sys
 
 import pytest
 
-from hico_plugin.bench import BenchConfig, compare_results, load_results, pareto_front, write_outputs
+from hico_plugin.bench import (
+    BenchConfig,
+    compare_results,
+    load_results,
+    pareto_front,
+    write_outputs,
+)
 from hico_plugin.bench.timing import STAGES
 from hico_plugin.cli import analyze as analyze_cli
 from hico_plugin.cli import bench as bench_cli

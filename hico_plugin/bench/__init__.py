@@ -9,13 +9,18 @@ Public API::
 """
 
 from hico_plugin.bench.matrix import ABLATION_PRESETS, BenchConfig, run_matrix
-from hico_plugin.bench.report import compare_results, load_results, pareto_front, write_outputs
+from hico_plugin.bench.report import (
+    compare_results,
+    load_results,
+    pareto_front,
+    write_outputs,
+)
 from hico_plugin.bench.timing import STAGES, StageTimer
 
 __all__ = [
     "ABLATION_PRESETS",
-    "BenchConfig",
     "STAGES",
+    "BenchConfig",
     "StageTimer",
     "compare_results",
     "load_results",

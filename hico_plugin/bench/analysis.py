@@ -11,7 +11,6 @@ f_hat = context(f) (the features the decoder sees).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
 
 

@@ -22,13 +22,14 @@ import dataclasses
 import hashlib
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, Optional
+from typing import Any, Literal
 
 import torch
 
-from hico_plugin.bench.timing import STAGES, StageTimer
+from hico_plugin.bench.timing import StageTimer
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine import TrainerCallback, evaluate
 from hico_plugin.engine.config_io import write_text_atomic
@@ -50,11 +51,12 @@ class BenchConfig(InstantiateConfig):
     """Presets to compare (rows of the ablation table)."""
     scenes: tuple[str, ...] = ("city-block", "pagoda")
     """Built-in scenes (ignored when --data is given)."""
-    data: Optional[Path] = None
+    data: Path | None = None
     """A COLMAP dataset directory to benchmark instead of the built-in scenes."""
-    budgets: tuple[int, ...] = (75, 150, 300)
+    budgets: tuple[int, ...] = (50, 100, 200)
     """Training budgets in optimizer steps (checkpoints of one run when schedule is nested). The
-    default keeps the 12 default runs near an hour on 2 cores (at about 1 s per step)."""
+    default aims at about an hour for the 12 default runs at ~1.5 s per step; a report's ms / step
+    column tells the step time on your machine, scale the budgets by it."""
     schedule: Literal["nested", "separate"] = "nested"
     """nested: one run per (preset, scene) to the largest budget, evaluated at each budget (its
     schedules scaled to the largest budget); separate: one run per budget with its own schedule."""
@@ -73,7 +75,7 @@ class BenchConfig(InstantiateConfig):
     device: str = "auto"
     """Training device (as hico-train --device)."""
 
-    def resolved(self) -> "BenchConfig":
+    def resolved(self) -> BenchConfig:
         """This config with --quick applied and its fields checked."""
         config = self
         if config.quick:  # quick replaces only what the command line left at its default

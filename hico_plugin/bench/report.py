@@ -194,9 +194,9 @@ def write_plots(cells: list[dict[str, Any]], out_dir: Path) -> list[str]:
 def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
     cells, bench = results["cells"], results["bench"]
     parts = ["# hico-bench report", "",
-             f"Presets {', '.join(_presets(cells))}; budgets {bench.get('budgets')} steps "
-             f"({bench.get('schedule')} schedule), seed {bench.get('seed')}, downscale {bench.get('downscale')}. "
-             "Wall time is training time only (evaluation excluded).", "",
+             (f"Presets {', '.join(_presets(cells))}; budgets {bench.get('budgets')} steps "
+              f"({bench.get('schedule')} schedule), seed {bench.get('seed')}, downscale {bench.get('downscale')}. "
+              "Wall time is training time only (evaluation excluded)."), "",
              "## Ablation (largest budget)", "", ablation_table(cells), "",
              "## Accuracy vs time", "", "★ = on the (wall time, PSNR) Pareto front of its scene.", "",
              accuracy_time_table(cells), "",
@@ -220,6 +220,12 @@ def write_outputs(bench: Any, cells: list[dict[str, Any]], out_dir: Path, plots:
     return results
 
 
+def _delta(old: dict[str, Any], new: dict[str, Any], field: str, digits: int) -> str:
+    if old.get(field) is None or new.get(field) is None:
+        return "–"
+    return f"{old[field]:.{digits}f} → {new[field]:.{digits}f} ({new[field] - old[field]:+.{digits}f})"
+
+
 def compare_results(a: dict[str, Any], b: dict[str, Any], name_a: str = "A", name_b: str = "B") -> str:
     """Markdown table of the cells both results hold (matched by preset, scene, budget): B - A."""
     index_a = {(c["preset"], c["scene"], c["budget"]): c for c in a["cells"]}
@@ -229,14 +235,9 @@ def compare_results(a: dict[str, Any], b: dict[str, Any], name_a: str = "A", nam
         if key not in index_a:
             continue
         old = index_a[key]
-
-        def delta(field: str, digits: int) -> str:
-            if old.get(field) is None or cell.get(field) is None:
-                return "–"
-            return f"{old[field]:.{digits}f} → {cell[field]:.{digits}f} ({cell[field] - old[field]:+.{digits}f})"
-
-        rows.append([*map(str, key), delta("psnr", 2), delta("ssim", 3), delta("normal_error_deg", 1),
-                     delta("wall_seconds", 1), delta("step_ms", 0)])
+        rows.append([*map(str, key), _delta(old, cell, "psnr", 2), _delta(old, cell, "ssim", 3),
+                     _delta(old, cell, "normal_error_deg", 1), _delta(old, cell, "wall_seconds", 1),
+                     _delta(old, cell, "step_ms", 0)])
     if not rows:
         return f"No cell (preset, scene, budget) is in both {name_a} and {name_b}.\n"
     header = ["method", "scene", "steps", "PSNR", "SSIM", "normal err (°)", "wall (s)", "ms / step"]

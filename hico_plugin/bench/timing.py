@@ -20,8 +20,9 @@ shows the same ranges. Nested stages (clca inside decode) are subtracted from th
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import torch
 
@@ -91,7 +92,7 @@ class StageTimer:
         self.steps = 0
 
     @contextmanager
-    def attach(self, model: Any, optimizers: Any | None = None) -> Iterator["StageTimer"]:
+    def attach(self, model: Any, optimizers: Any | None = None) -> Iterator[StageTimer]:
         """Time ``model`` (a HiCoModel) and ``optimizers`` while inside the block; restores them after.
 
         Instance attributes shadow the class methods, so other models are untouched; modules are

@@ -5,9 +5,9 @@ a side-by-side comparison (e.g. an octree-gs run next to a hico-gs run)."""
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import tyro
 

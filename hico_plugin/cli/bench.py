@@ -4,12 +4,18 @@ and ``hico-bench compare A B`` (two results.json files or bench output directori
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import tyro
 
-from hico_plugin.bench import BenchConfig, compare_results, load_results, run_matrix, write_outputs
+from hico_plugin.bench import (
+    BenchConfig,
+    compare_results,
+    load_results,
+    run_matrix,
+    write_outputs,
+)
 from hico_plugin.cli import run_cli
 from hico_plugin.errors import HicoError
 
