@@ -38,7 +38,7 @@ def test_quick_matrix_records_every_cell(bench_dir):
         assert cell["normal_error_deg"] is not None and cell["depth_abs_rel"] is not None  # tiny has GT
         assert cell["num_anchors"] > 0 and cell["num_gaussians"] > 0 and cell["fps"] > 0
         assert cell["max_steps"] == 3 and cell["wall_seconds"] > 0
-        assert set(cell["stage_ms"]) == set(STAGES)
+        assert set(cell["stage_ms"]) == set(STAGES) and cell["wall_ms_per_step"] > 0
         assert cell["step_ms"] == pytest.approx(sum(cell["stage_ms"].values()))
     final = {c["preset"]: c for c in cells if c["budget"] == 3}
     for stage in ("lod_select", "decode", "rasterize", "losses", "backward", "optimizer"):

@@ -163,6 +163,8 @@ class CheckpointRecorder(TrainerCallback):
                   "wall_seconds": float(metrics.get("train_seconds", trainer.train_seconds)),
                   **{key: _float(results.get(key)) for key in METRIC_KEYS},
                   "stage_ms": stage_ms, "step_ms": sum(stage_ms.values()),
+                  # includes what no stage covers (batch loading, logging, warm-up): compare with step_ms
+                  "wall_ms_per_step": 1e3 * float(metrics.get("train_seconds", trainer.train_seconds)) / budget,
                   "eval_views": int(results.get("num_views", 0))}
         write_text_atomic(self.cells[budget], json.dumps(record, indent=2, allow_nan=True) + "\n")
         psnr = record["psnr"]
