@@ -37,9 +37,9 @@ def test_every_output_of_the_real_model_draws(tiny_model):
     assert isinstance(model, ViewableModel)
     camera = dataset.cameras[int(dataset.train_indices[0])].scaled(0.25)
     num_levels = int(model.viewer_anchors()[1].max()) + 1
-    # One render with every output any view needs (the model reads only these three fields).
+    # One render with every output any view needs (the model reads only these four fields).
     everything = SimpleNamespace(required_outputs=tuple(sorted(set().union(*REQUIRED_OUTPUTS.values()))),
-                                 clca_enabled=True, level_range=None)
+                                 clca_enabled=True, level_range=None, distance_scale=1.0)
     outputs = model.viewer_render(camera, everything)
     for name in OUTPUT_NAMES:
         image = visualize(outputs, RenderOptions(output=name, num_levels=num_levels))

@@ -22,8 +22,10 @@ def import_open3d():
     """The open3d module, or a HicoError saying how to install the optional extra."""
     try:
         import open3d
-    except ImportError:
-        raise HicoError("mesh extraction needs Open3D: pip install 'hico_plugin[mesh]' (open3d>=0.18)") from None
+    except ImportError as error:
+        # Installed but unloadable is usually a missing system library (the CPU wheel links libusb-1.0).
+        raise HicoError(f"mesh extraction needs Open3D: pip install 'hico_plugin[mesh]' (open3d>=0.18); "
+                        f"importing it failed with: {error}") from None
     return open3d
 
 
