@@ -32,6 +32,7 @@ from hico_plugin.field.field import FieldConfig
 from hico_plugin.losses import LossesConfig
 from hico_plugin.losses.dngc import warmup_weight
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
+from hico_plugin.model.sky import SkyConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
 
@@ -49,8 +50,10 @@ class HiCoModelConfig(InstantiateConfig):
     """Rasterizer backend and its options."""
     losses: LossesConfig = dataclass_field(default_factory=LossesConfig)
     """Loss components (photometric, DNGC)."""
+    sky: SkyConfig = dataclass_field(default_factory=SkyConfig)
+    """Learned directional sky composited behind the Gaussians."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Colour composited behind the Gaussians."""
+    """Colour composited behind the Gaussians when the sky is off."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (DNGC t0 and T, like the field's densification and levels)
     by max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
@@ -87,6 +90,7 @@ class HiCoModel(nn.Module):
         self.losses = losses_config.setup()
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
+        self.sky = config.sky.setup() if config.sky.enabled else None
         self.last_num_gaussians = 0
         self.context_enabled = True  # the viewer's CLCA toggle; training always uses the config
 
@@ -115,10 +119,18 @@ class HiCoModel(nn.Module):
             levels = self.field.levels[visible_ids]
             visible_ids = visible_ids[(levels >= level_range[0]) & (levels <= level_range[1])]
         gaussians = self.field.decode(camera, visible_ids, context_enabled=context_enabled)
+        # The sky is composited here, from alpha; a constant background inside the rasterizer.
+        wanted = set(outputs) | ({"alpha"} if self.sky is not None and "rgb" in outputs else set())
         out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-                            gaussians.colors, camera, outputs=tuple(sorted(outputs)),
-                            background=self.background)
+                            gaussians.colors, camera, outputs=tuple(sorted(wanted)),
+                            background=None if self.sky is not None else self.background)
+        if self.sky is not None and out.rgb is not None:
+            out.rgb = self.over_sky(out, camera)
         return out, gaussians
+
+    def over_sky(self, out: RenderOutputs, camera: Camera) -> Tensor:
+        """``out.rgb`` (rendered without background) over the sky: rgb + (1 - alpha) * sky, [H,W,3]."""
+        return out.rgb + (1.0 - out.alpha) * self.sky(camera)
 
     # ----- viewer (hico_plugin.viewer.state.ViewableModel) ----------------------------------------
 
@@ -145,11 +157,16 @@ class HiCoModel(nn.Module):
     # ----- TrainableModel --------------------------------------------------------------------------
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
-        return self.field.param_groups()
+        groups = self.field.param_groups()
+        if self.sky is not None:
+            groups["sky"] = list(self.sky.parameters())
+        return groups
 
     def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
-        return {name: LRSchedule(lr_init, lr_final, max_steps)
-                for name, (lr_init, lr_final) in self.field.default_lrs(self.spatial_lr_scale).items()}
+        lrs = self.field.default_lrs(self.spatial_lr_scale)
+        if self.sky is not None:
+            lrs["sky"] = (0.01, 1e-4)  # a small MLP like the colour MLP, a little faster: sky is simple
+        return {name: LRSchedule(lr_init, lr_final, max_steps) for name, (lr_init, lr_final) in lrs.items()}
 
     def train_step(self, batch: TrainBatch, step: int) -> StepOutput:
         wanted = self.required_outputs(step)
