@@ -150,38 +150,34 @@ def test_float32_matches_reference_and_depth_option():
     assert (out.depth_normal[0] == 0).all() and (out.depth_normal[:, -1] == 0).all()
 
 
-def test_random_cotangents_match_reference_gradients():
-    scene = [t.requires_grad_() for t in random_scene(40, 11)]
-    viewmat, K = camera(23, 19, seed=5)
-    out = rasterize(*scene, viewmat, K, 23, 19, outputs=ALL, tile_size=8, use_compile=False)
-    ref = reference(*scene, viewmat, K, 23, 19)
-    g = torch.Generator().manual_seed(1)
+def assert_gradients_match_reference(scene, viewmat, K, width, height, seed):
+    """Gradients of every input under random cotangents on every output equal the reference's."""
+    out = rasterize(*scene, viewmat, K, width, height, outputs=ALL, tile_size=8, use_compile=False)
+    ref = reference(*scene, viewmat, K, width, height)
+    g = torch.Generator().manual_seed(seed)
     cots = {n: torch.randn(ref[n].shape, generator=g, dtype=torch.float64) for n in ALL}
     got = torch.autograd.grad(sum((getattr(out, n) * cots[n]).sum() for n in ALL), scene)
     want = torch.autograd.grad(sum((ref[n] * cots[n]).sum() for n in ALL), scene)
     for a, b in zip(got, want):
         torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-6)
+    return ref
+
+
+def test_random_cotangents_match_reference_gradients():
+    scene = [t.requires_grad_() for t in random_scene(40, 11)]
+    viewmat, K = camera(23, 19, seed=5)
+    assert_gradients_match_reference(scene, viewmat, K, 23, 19, seed=1)
 
 
 def test_gradients_behind_opaque_layers_match_reference():
     """Deep, nearly opaque stacks: most tile rows lie behind the transmittance cut, where the backward
     pass skips them; every gradient must still equal the dense reference's."""
     means, quats, scales, opacities, colors = random_scene(150, 4, spread=0.4)
-    scales = scales * 10.0
-    opacities = 0.9 + 0.1 * opacities
-    scene = [t.requires_grad_() for t in (means, quats, scales, opacities, colors)]
+    scene = [t.requires_grad_() for t in (means, quats, scales * 10.0, 0.9 + 0.1 * opacities, colors)]
     viewmat, K = camera(21, 17, seed=2)
-    with torch.no_grad():
-        coverage = reference(*scene, viewmat, K, 21, 17)["alpha"]
-    assert coverage.min() > 0.998  # ~150 Gaussians of alpha >= 0.9 per pixel: the cut comes after a few
-    out = rasterize(*scene, viewmat, K, 21, 17, outputs=ALL, tile_size=8, use_compile=False)
-    ref = reference(*scene, viewmat, K, 21, 17)
-    g = torch.Generator().manual_seed(3)
-    cots = {n: torch.randn(ref[n].shape, generator=g, dtype=torch.float64) for n in ALL}
-    got = torch.autograd.grad(sum((getattr(out, n) * cots[n]).sum() for n in ALL), scene)
-    want = torch.autograd.grad(sum((ref[n] * cots[n]).sum() for n in ALL), scene)
-    for a, b in zip(got, want):
-        torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-6)
+    ref = assert_gradients_match_reference(scene, viewmat, K, 21, 17, seed=3)
+    # ~150 Gaussians of alpha >= 0.9 over every pixel: the cut comes after a few of them.
+    assert ref["alpha"].min() > 0.998
 
 
 def tiny_scene(seed):
