@@ -6,7 +6,7 @@ with every geometry output. Random Gaussians: log-scales around -4, in a 2x2x2 m
 of a camera with f = image width.
 
     python benchmarks/rasterizer.py                       # the full table (N 10k/50k/200k x 256^2/512^2)
-    python benchmarks/rasterizer.py --ns 50000 --sizes 512 --no-compile
+    python benchmarks/rasterizer.py --ns 50000 --sizes 512 --no-compile --tile-size 16
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def scene(n: int, size: int):
     return [means, quats, scales, opacities, colors], torch.eye(4), K
 
 
-def run_case(n: int, size: int, outputs: tuple[str, ...], reps: int, use_compile: bool) -> dict:
+def run_case(n: int, size: int, outputs: tuple[str, ...], reps: int, use_compile: bool, tile_size: int) -> dict:
     """Time one case in this process; returns medians (s), pair count and peak RSS (GB)."""
     import torch
 
@@ -46,7 +46,8 @@ def run_case(n: int, size: int, outputs: tuple[str, ...], reps: int, use_compile
 
     def forward(grad: bool):
         leaves = [p.detach().requires_grad_(grad) for p in params]
-        out = rasterize(*leaves, viewmat, K, size, size, outputs=outputs, use_compile=use_compile)
+        out = rasterize(*leaves, viewmat, K, size, size, outputs=outputs, use_compile=use_compile,
+                        tile_size=tile_size)
         if grad:
             loss = sum(img.square().mean() for img in out.images().values())
             loss.backward()
@@ -78,6 +79,7 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-compile", action="store_true", help="eager compositor only")
+    parser.add_argument("--tile-size", type=int, default=4, help="tile edge in pixels (the torch backend's default: 4)")
     parser.add_argument("--case", help=argparse.SUPPRESS)  # internal: run one case, print JSON
     args = parser.parse_args()
 
@@ -87,11 +89,11 @@ def main() -> None:
     if args.case:
         n, size, which = args.case.split(",")
         outputs = ("rgb",) if which == "rgb" else GEOMETRY
-        print(json.dumps(run_case(int(n), int(size), outputs, args.reps, not args.no_compile)))
+        print(json.dumps(run_case(int(n), int(size), outputs, args.reps, not args.no_compile, args.tile_size)))
         return
 
     print(f"torch {torch.__version__}, {args.threads} threads, compile={'off' if args.no_compile else 'on'}"
-          f", median of {args.reps} after 1 warm-up; shared machine: timings are noisy")
+          f", tile {args.tile_size}, median of {args.reps} after 1 warm-up; shared machine: timings are noisy")
     header = f"{'N':>8} {'res':>5} {'outputs':>9} {'fwd s':>8} {'fwd+bwd s':>10} {'peak GB':>8} {'drawn':>8}"
     print(header)
     print("-" * len(header))
@@ -100,7 +102,7 @@ def main() -> None:
             rows = {}
             for which in ("rgb", "geometry"):
                 cmd = [sys.executable, __file__, "--case", f"{n},{size},{which}",
-                       "--reps", str(args.reps), "--threads", str(args.threads)]
+                       "--reps", str(args.reps), "--threads", str(args.threads), "--tile-size", str(args.tile_size)]
                 if args.no_compile:
                     cmd.append("--no-compile")
                 proc = subprocess.run(cmd, capture_output=True, text=True)
