@@ -86,11 +86,12 @@ def test_empty_point_cloud(tmp_path):
     expect_error(r"points3D: the point cloud is empty", tmp_path)
 
 
-def test_nan_point(tmp_path):
-    def spoil(reconstruction):
-        reconstruction.points3D[next(iter(reconstruction.points3D))].xyz = np.array([np.nan, 0.0, 0.0])
+def _nan_point(reconstruction):
+    reconstruction.points3D[next(iter(reconstruction.points3D))].xyz = np.array([np.nan, 0.0, 0.0])
 
-    write_dataset(tmp_path, edit=spoil)
+
+def test_nan_point(tmp_path):
+    write_dataset(tmp_path, edit=_nan_point)
     expect_error(r"points3D: 1 points have NaN/inf coordinates", tmp_path)
 
 
@@ -160,3 +161,26 @@ def test_inspect_summary(tmp_path, monkeypatch, capsys):
     assert "points       40 sparse points" in out
     assert "LOD range" in out and "octree levels" in out
     assert "verified     all 10 images" in out
+
+
+@pytest.mark.parametrize("breakage", ["missing", "no_points", "nan_point", "no_training_images"])
+def test_train_prints_one_error_line_and_exits_2(tmp_path, monkeypatch, capsys, breakage):
+    """hico-train loads data through the same parser: the same one-line errors, exit 2, no traceback."""
+    from hico_plugin.cli import train as train_cli
+
+    root, extra = tmp_path / "data", []
+    if breakage == "no_points":
+        write_dataset(root, num_points=0)
+    elif breakage == "nan_point":
+        write_dataset(root, edit=_nan_point)
+    elif breakage == "no_training_images":
+        write_dataset(root, num_images=3)
+        extra = ["--test-every", "1"]
+    expected = {"missing": "not found", "no_points": "point cloud is empty", "nan_point": "NaN/inf coordinates",
+                "no_training_images": "the test split takes all 3 images"}[breakage]
+    argv = ["hico-gs-lite", "--data", str(root), "--vis", "none", "--output-dir", str(tmp_path / "run"), *extra]
+    with pytest.raises(SystemExit) as exit_:
+        train_cli.entrypoint(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2
+    assert err.startswith("error: ") and err.count("\n") == 1 and expected in err, err
