@@ -237,6 +237,19 @@ def test_accumulate_stats_sums_per_offset():
     assert int(field.stat_views) == 1
 
 
+@pytest.mark.parametrize("radii_shape", [(0,), (0, 2)])
+def test_accumulate_stats_of_a_view_that_decodes_nothing(radii_shape):
+    field = make_field()
+    with torch.no_grad():
+        field.decoder.mlp_opacity[-1].bias.fill_(-10.0)  # every child transparent: none is kept
+    camera = ring_cameras()[0]
+    g = field.decode(camera, field.select(camera, 10))
+    assert len(g) == 0 and len(g.visible_ids) > 0
+    field.accumulate_stats(g, torch.zeros(0, 2), torch.zeros(radii_shape, dtype=torch.int32), camera, step=10)
+    assert int(field.stat_views) == 1 and float(field.offset_denom.sum()) == 0.0
+    assert int(field.anchor_denom.sum()) == len(g.visible_ids)
+
+
 def grow_prune_case() -> AnchorField:
     """Anchor 0 (level 0, cell 4,4,4) has high-gradient offsets; anchor 1 never shows opacity."""
     field = hand_field([[4, 4, 4], [0, 0, 0]], [0, 0], [[4, 4, 1.5]], progressive=False)

@@ -242,7 +242,7 @@ class AnchorField(nn.Module):
         opacity_sums = gaussians.raw_opacities.clamp_min(0).sum(1).to(self.opacity_accum)
         self.opacity_accum.index_add_(0, ids, opacity_sums)
         self.anchor_denom.index_add_(0, ids, torch.ones_like(ids, dtype=self.anchor_denom.dtype))
-        drawn = (radii.reshape(radii.shape[0], -1) > 0).any(1)
+        drawn = radii > 0 if radii.dim() == 1 else (radii > 0).any(-1)  # a view may decode nothing
         ndc = means2d_grad.detach() * means2d_grad.new_tensor([camera.width / 2, camera.height / 2])
         grad_norm = ndc.norm(dim=-1)[drawn].to(self.offset_grad_accum)
         offset_rows = (gaussians.anchor_ids * self.offsets.shape[1] + gaussians.child_ids)[drawn]
