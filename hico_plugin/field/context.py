@@ -192,7 +192,12 @@ class AttentionContext(ContextAggregator):
         self.roles = nn.Parameter(0.02 * torch.randn(3, feature_dim))
         nn.init.zeros_(self.out.weight)
         if config.bias:
-            nn.init.zeros_(self.out.bias)
+            # Zero biases too: anchor features start at zero, so the values would otherwise be the
+            # value bias (|b| ~ 0.18 per channel), the same for every anchor, and Adam's first steps
+            # on W_o would shift every f_hat alike by ~0.04 per channel per step -- enough to drive
+            # every opacity below zero within ten steps (all Gaussians gone, anchors pruned).
+            for layer in (self.query, self.key, self.value, self.out):
+                nn.init.zeros_(layer.bias)
 
     def forward(self, features, levels, positions, grid):
         triplet = context_triplet(features, levels, positions, grid, self.config.parent_rule) + self.roles
