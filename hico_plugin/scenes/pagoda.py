@@ -9,7 +9,7 @@ import numpy as np
 
 from hico_plugin.scenes.base import SCENES, SceneConfig, SceneEffects
 from hico_plugin.scenes.orbits import orbit_rings
-from hico_plugin.scenes.raycast import Ground, Revolution, Sphere, box, prism
+from hico_plugin.scenes.raycast import Ground, Revolution, Sphere, prism
 
 TILE = (0.3, 0.33, 0.3)  # dark glazed tiles
 WOOD = (0.55, 0.16, 0.1)  # red lacquered timber

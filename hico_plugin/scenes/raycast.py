@@ -90,28 +90,6 @@ class ConvexPolyhedron(Primitive):
 
     def intersect(self, origins, dirs, eps):
         denom = dirs @ self.normals.T  # [R, F]
-        num = self.offsets[None] - origins @ self.normals.T  # [R or 1, F]; > 0: inside this plane
-        # a ray parallel to a plane gets a huge finite t: +big if inside (never the exit), -big if
-        # outside (an exit before any entry, so a miss)
-        denom[denom == 0] = 1e-300
-        t_plane = num / denom
-        entering = denom < 0
-        t_enter = np.max(t_plane, axis=1, where=entering, initial=-np.inf)
-        t_exit = np.min(t_plane, axis=1, where=~entering, initial=np.inf)
-        hit = (t_enter <= t_exit) & (t_enter > eps)
-        face = np.zeros(len(dirs), np.int64)
-        face[hit] = np.where(entering[hit], t_plane[hit], -np.inf).argmax(1)
-        return np.where(hit, t_enter, MISS), face
-
-    def hull_points(self):
-        return self.vertices
-
-    def bounding_sphere(self) -> tuple[np.ndarray, float]:
-        center = 0.5 * (self.vertices.min(0) + self.vertices.max(0))
-        return center, float(np.linalg.norm(self.vertices - center, axis=1).max())
-
-    def intersect(self, origins, dirs, eps):
-        denom = dirs @ self.normals.T  # [R, F]
         num = self.offsets[None] - origins @ self.normals.T  # [R, F]; > 0 means inside this plane
         # a ray parallel to a plane gets a huge finite t: +big if inside (never the exit), -big if
         # outside (an exit before any entry, so a miss)
