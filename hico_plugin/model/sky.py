@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from hico_plugin.cameras import Camera
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.rasterizer.geometry import pixel_rays
 
 
 @dataclass
@@ -44,11 +45,7 @@ class SkyModel(nn.Module):
 
 
 def ray_directions(camera: Camera) -> Tensor:
-    """Unit world-space directions through the pixel centres (+0.5): [H,W,3]."""
-    K = camera.K
-    rows = torch.arange(camera.height, dtype=K.dtype, device=K.device) + 0.5
-    cols = torch.arange(camera.width, dtype=K.dtype, device=K.device) + 0.5
-    v, u = torch.meshgrid(rows, cols, indexing="ij")
-    dirs_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
-    dirs_world = dirs_cam @ camera.viewmat[:3, :3].to(K)  # R^T d, row-vector form
+    """Unit world-space directions through the pixel centres (the rasterizer's rays): [H,W,3]."""
+    dirs_cam = pixel_rays(camera.K[None], camera.width, camera.height)[0]
+    dirs_world = dirs_cam @ camera.viewmat[:3, :3].to(camera.K)  # R^T d, row-vector form
     return dirs_world / dirs_world.norm(dim=-1, keepdim=True)
