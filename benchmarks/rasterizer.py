@@ -6,7 +6,8 @@ with every geometry output. Random Gaussians: log-scales around -4, in a 2x2x2 m
 of a camera with f = image width.
 
     python benchmarks/rasterizer.py                       # the full table (N 10k/50k/200k x 256^2/512^2)
-    python benchmarks/rasterizer.py --ns 50000 --sizes 512 --no-compile --tile-size 16
+    python benchmarks/rasterizer.py --compositor torch    # the vectorised torch compositor instead
+    python benchmarks/rasterizer.py --ns 50000 --sizes 512 --compositor torch --no-compile --tile-size 16
 """
 
 from __future__ import annotations
@@ -36,18 +37,21 @@ def scene(n: int, size: int):
     return [means, quats, scales, opacities, colors], torch.eye(4), K
 
 
-def run_case(n: int, size: int, outputs: tuple[str, ...], reps: int, use_compile: bool, tile_size: int) -> dict:
+def run_case(n: int, size: int, outputs: tuple[str, ...], reps: int, use_compile: bool, tile_size: int,
+             compositor: str) -> dict:
     """Time one case in this process; returns medians (s), pair count and peak RSS (GB)."""
     import torch
 
     from hico_plugin.rasterizer import rasterize
+    from hico_plugin.rasterizer.renderer import default_tile_size
 
     params, viewmat, K = scene(n, size)
+    tile_size = tile_size or default_tile_size("torch", compositor, params[0].device)
 
     def forward(grad: bool):
         leaves = [p.detach().requires_grad_(grad) for p in params]
         out = rasterize(*leaves, viewmat, K, size, size, outputs=outputs, use_compile=use_compile,
-                        tile_size=tile_size)
+                        tile_size=tile_size, compositor=compositor)
         if grad:
             loss = sum(img.square().mean() for img in out.images().values())
             loss.backward()
@@ -78,8 +82,11 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--no-compile", action="store_true", help="eager compositor only")
-    parser.add_argument("--tile-size", type=int, default=4, help="tile edge in pixels (the torch backend's default: 4)")
+    parser.add_argument("--compositor", default="auto", choices=["auto", "fused", "torch"],
+                        help="blending kernel (auto: the fused C++ one when it builds)")
+    parser.add_argument("--no-compile", action="store_true", help="torch compositor: eager, no torch.compile")
+    parser.add_argument("--tile-size", type=int, default=0,
+                        help="tile edge in pixels (0: the compositor's default, 16 fused / 4 torch)")
     parser.add_argument("--case", help=argparse.SUPPRESS)  # internal: run one case, print JSON
     args = parser.parse_args()
 
@@ -89,11 +96,12 @@ def main() -> None:
     if args.case:
         n, size, which = args.case.split(",")
         outputs = ("rgb",) if which == "rgb" else GEOMETRY
-        print(json.dumps(run_case(int(n), int(size), outputs, args.reps, not args.no_compile, args.tile_size)))
+        print(json.dumps(run_case(int(n), int(size), outputs, args.reps, not args.no_compile,
+                                  args.tile_size, args.compositor)))
         return
 
-    print(f"torch {torch.__version__}, {args.threads} threads, compile={'off' if args.no_compile else 'on'}"
-          f", tile {args.tile_size}, median of {args.reps} after 1 warm-up; shared machine: timings are noisy")
+    print(f"torch {torch.__version__}, {args.threads} threads, compositor {args.compositor}, "
+          f"compile={'off' if args.no_compile else 'on'}, tile {args.tile_size or 'default'}, median of {args.reps} after 1 warm-up; shared machine: timings are noisy")
     header = f"{'N':>8} {'res':>5} {'outputs':>9} {'fwd s':>8} {'fwd+bwd s':>10} {'peak GB':>8} {'drawn':>8}"
     print(header)
     print("-" * len(header))
@@ -102,7 +110,8 @@ def main() -> None:
             rows = {}
             for which in ("rgb", "geometry"):
                 cmd = [sys.executable, __file__, "--case", f"{n},{size},{which}",
-                       "--reps", str(args.reps), "--threads", str(args.threads), "--tile-size", str(args.tile_size)]
+                       "--reps", str(args.reps), "--threads", str(args.threads), "--tile-size", str(args.tile_size),
+                       "--compositor", args.compositor]
                 if args.no_compile:
                     cmd.append("--no-compile")
                 proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -109,13 +109,18 @@ def camera(width, height, dtype=torch.float64, seed=0):
     return viewmat, K
 
 
+# Both blending kernels of the torch backend are held to the same reference.
+compositors = pytest.mark.parametrize("compositor", ["torch", "fused"])
+
+
+@compositors
 @pytest.mark.parametrize("seed,width,height,tile", [(0, 37, 29, 16), (1, 24, 20, 8), (2, 16, 16, 4)])
-def test_all_outputs_match_dense_reference(seed, width, height, tile):
+def test_all_outputs_match_dense_reference(seed, width, height, tile, compositor):
     scene = random_scene(60, seed)
     viewmat, K = camera(width, height, seed=seed)
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
     out = rasterize(*scene, viewmat, K, width, height, outputs=ALL, tile_size=tile, background=bg,
-                    use_compile=False)
+                    use_compile=False, compositor=compositor)
     ref = reference(*scene, viewmat, K, width, height, background=bg)
     for name in ALL:
         got = getattr(out, name)
@@ -124,11 +129,13 @@ def test_all_outputs_match_dense_reference(seed, width, height, tile):
     assert out.alpha.max() > 0.5  # the scene actually covers the image
 
 
-def test_float32_matches_reference_and_depth_option():
+@compositors
+def test_float32_matches_reference_and_depth_option(compositor):
     scene = random_scene(200, 7)
     viewmat, K = camera(40, 33, seed=3)
     scene32 = [t.float() for t in scene]
-    out = rasterize(*scene32, viewmat.float(), K.float(), 40, 33, outputs=ALL, use_compile=False)
+    out = rasterize(*scene32, viewmat.float(), K.float(), 40, 33, outputs=ALL, use_compile=False,
+                    compositor=compositor)
     ref = reference(*scene, viewmat, K, 40, 33)
     for name in ("rgb", "alpha", "depth", "normal", "distance"):
         torch.testing.assert_close(getattr(out, name).double(), ref[name], atol=2e-5, rtol=1e-4)
@@ -142,7 +149,7 @@ def test_float32_matches_reference_and_depth_option():
     out = rasterize(means, quats, scales, ones, ones[:, None], torch.eye(4),
                     torch.tensor([[20.0, 0, 16], [0, 20, 16], [0, 0, 1]]), 32, 32,
                     outputs=("depth", "plane_depth", "depth_normal", "normal"),
-                    depth_normal_from="depth", use_compile=False)
+                    depth_normal_from="depth", use_compile=False, compositor=compositor)
     inner = out.depth_normal[1:-1, 1:-1]
     torch.testing.assert_close(inner, torch.tensor([0.0, 0, -1]).expand_as(inner), atol=1e-4, rtol=0)
     torch.testing.assert_close(out.plane_depth[1:-1, 1:-1], torch.full((30, 30, 1), 2.0), atol=1e-4,
@@ -150,9 +157,10 @@ def test_float32_matches_reference_and_depth_option():
     assert (out.depth_normal[0] == 0).all() and (out.depth_normal[:, -1] == 0).all()
 
 
-def assert_gradients_match_reference(scene, viewmat, K, width, height, seed):
+def assert_gradients_match_reference(scene, viewmat, K, width, height, seed, compositor):
     """Gradients of every input under random cotangents on every output equal the reference's."""
-    out = rasterize(*scene, viewmat, K, width, height, outputs=ALL, tile_size=8, use_compile=False)
+    out = rasterize(*scene, viewmat, K, width, height, outputs=ALL, tile_size=8, use_compile=False,
+                    compositor=compositor)
     ref = reference(*scene, viewmat, K, width, height)
     g = torch.Generator().manual_seed(seed)
     cots = {n: torch.randn(ref[n].shape, generator=g, dtype=torch.float64) for n in ALL}
@@ -163,19 +171,21 @@ def assert_gradients_match_reference(scene, viewmat, K, width, height, seed):
     return ref
 
 
-def test_random_cotangents_match_reference_gradients():
+@compositors
+def test_random_cotangents_match_reference_gradients(compositor):
     scene = [t.requires_grad_() for t in random_scene(40, 11)]
     viewmat, K = camera(23, 19, seed=5)
-    assert_gradients_match_reference(scene, viewmat, K, 23, 19, seed=1)
+    assert_gradients_match_reference(scene, viewmat, K, 23, 19, seed=1, compositor=compositor)
 
 
-def test_gradients_behind_opaque_layers_match_reference():
+@compositors
+def test_gradients_behind_opaque_layers_match_reference(compositor):
     """Deep, nearly opaque stacks: most tile rows lie behind the transmittance cut, where the backward
     pass skips them; every gradient must still equal the dense reference's."""
     means, quats, scales, opacities, colors = random_scene(150, 4, spread=0.4)
     scene = [t.requires_grad_() for t in (means, quats, scales * 10.0, 0.9 + 0.1 * opacities, colors)]
     viewmat, K = camera(21, 17, seed=2)
-    ref = assert_gradients_match_reference(scene, viewmat, K, 21, 17, seed=3)
+    ref = assert_gradients_match_reference(scene, viewmat, K, 21, 17, seed=3, compositor=compositor)
     # ~150 Gaussians of alpha >= 0.9 over every pixel: the cut comes after a few of them.
     assert ref["alpha"].min() > 0.998
 
@@ -194,7 +204,8 @@ def tiny_scene(seed):
     return (means, quats, scales, opacities, colors), torch.eye(4, dtype=torch.float64), K
 
 
-def test_gradcheck_every_input_and_output():
+@compositors
+def test_gradcheck_every_input_and_output(compositor):
     """One float64 gradcheck over all inputs (viewmat too) and random projections of every output."""
     (means, quats, scales, opacities, colors), viewmat, K = tiny_scene(0)
     viewmat[:3, 3] = torch.tensor([0.05, -0.02, 0.1], dtype=torch.float64)
@@ -206,7 +217,8 @@ def test_gradcheck_every_input_and_output():
     def f(means, quats, scales, opacities, colors, viewmat):
         out = rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, 10, 9,
                               outputs=frozenset(ALL), background=None, near=0.01, far=1e10,
-                              tile_size=4, depth_normal_from="plane_depth", use_compile=False)
+                              tile_size=4, depth_normal_from="plane_depth", use_compile=False,
+                              compositor=compositor)
         # Two random projections per output: every output checked at 14 backward passes.
         return torch.cat([getattr(out, n).reshape(-1) @ weights[n] for n in ALL])
 

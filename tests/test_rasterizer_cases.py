@@ -24,6 +24,12 @@ def scene(n, seed=0, z=3.0, spread=1.0, log_scale=-2.5):
             torch.rand(n, generator=g), torch.rand(n, 3, generator=g)]
 
 
+@pytest.fixture(params=["torch", "fused"])
+def compositor(request):
+    """Both blending kernels of the torch backend face every hard case."""
+    return request.param
+
+
 def render_and_backprop(params, viewmat=None, K=K32, width=32, height=24, outputs=ALL, **kw):
     """Render every output, backprop a random loss; return outputs and input gradients."""
     leaves = [p.detach().clone().requires_grad_() for p in params]
@@ -44,22 +50,22 @@ def assert_finite(out, grads):
 
 
 @pytest.mark.parametrize("log_scale", [math.log(1e-7), math.log(1e-3), 0.0, math.log(1e4)])
-def test_extreme_scales_finite(log_scale):
+def test_extreme_scales_finite(log_scale, compositor):
     params = scene(50, log_scale=log_scale)
-    out, grads = render_and_backprop(params)
+    out, grads = render_and_backprop(params, compositor=compositor)
     assert_finite(out, grads)
     assert (out.alpha <= 1 + 1e-6).all() and (out.alpha >= 0).all()
     if log_scale > 5:  # huge Gaussians cover the whole image
         assert out.alpha.min() > 0.5
 
 
-def test_flat_zero_quaternions_and_opacity_extremes():
+def test_flat_zero_quaternions_and_opacity_extremes(compositor):
     params = scene(40, seed=1)
     params[2][:, 2] = 0.0  # flat: one zero scale
     params[1][:10] = 0.0  # zero quaternions read as identity
     params[3][10:20] = 0.0
     params[3][20:30] = 1.0
-    out, grads = render_and_backprop(params)
+    out, grads = render_and_backprop(params, compositor=compositor)
     assert_finite(out, grads)
     assert (out.radii[10:20] == 0).all()  # opacity 0 is never drawn
     assert (grads[1][:10] == 0).all()  # zero quaternion: no gradient, no blow-up
@@ -68,13 +74,13 @@ def test_flat_zero_quaternions_and_opacity_extremes():
     assert drawn.any() and (out.plane_depth[drawn] > 0).all()
 
 
-def test_behind_near_far_and_outside_frustum_are_culled():
+def test_behind_near_far_and_outside_frustum_are_culled(compositor):
     means = torch.tensor([[0.0, 0, -2], [0, 0, 0.005], [0, 0, 0.02], [100.0, 0, 1], [0, 0, 2e10],
                           [0.0, 0, 2]])
     n = len(means)
     params = [means, torch.randn(n, 4), torch.full((n, 3), 0.05), torch.full((n,), 0.9),
               torch.rand(n, 3)]
-    out, grads = render_and_backprop(params)
+    out, grads = render_and_backprop(params, compositor=compositor)
     assert_finite(out, grads)
     assert out.radii.tolist()[:2] == [0, 0] and out.radii[3] == 0 and out.radii[4] == 0
     assert out.radii[2] > 0 and out.radii[5] > 0  # just past near: drawn (it fills the view)
@@ -82,22 +88,22 @@ def test_behind_near_far_and_outside_frustum_are_culled():
         assert (grads[0][i] == 0).all()
 
 
-def test_straddling_near_plane_is_finite():
+def test_straddling_near_plane_is_finite(compositor):
     params = scene(30, seed=2, z=0.3, spread=0.4, log_scale=math.log(0.5))
-    out, grads = render_and_backprop(params, near=0.2)
+    out, grads = render_and_backprop(params, near=0.2, compositor=compositor)
     assert_finite(out, grads)
 
 
-def test_no_gaussians():
+def test_no_gaussians(compositor):
     empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
     bg = torch.tensor([0.1, 0.2, 0.3])
-    out, grads = render_and_backprop(empty, background=bg)
+    out, grads = render_and_backprop(empty, background=bg, compositor=compositor)
     assert (out.rgb == bg).all() and (out.alpha == 0).all() and (out.depth == 0).all()
     assert out.means2d.shape == (0, 2) and out.radii.shape == (0,)
     assert_finite(out, grads)
 
 
-def test_thousands_in_one_tile():
+def test_thousands_in_one_tile(compositor):
     g = torch.Generator().manual_seed(3)
     n = 4000
     means = torch.cat([torch.rand(n, 2, generator=g) * 0.02 - 0.01,
@@ -105,7 +111,7 @@ def test_thousands_in_one_tile():
     params = [means, torch.randn(n, 4, generator=g), torch.full((n, 3), 0.002),
               torch.rand(n, generator=g) * 0.3, torch.rand(n, 3, generator=g)]
     out, grads = render_and_backprop(params, K=torch.tensor([[100.0, 0, 8], [0, 100, 8], [0, 0, 1]]),
-                                     width=16, height=16)
+                                     width=16, height=16, compositor=compositor)
     assert_finite(out, grads)
     assert out.alpha[8, 8] > 0.99
     # transmittance early stop: the far Gaussians behind a saturated pixel get no colour gradient
@@ -114,22 +120,22 @@ def test_thousands_in_one_tile():
 
 
 @pytest.mark.parametrize("width,height", [(1, 1), (17, 5), (33, 40)])
-def test_odd_image_sizes(width, height):
+def test_odd_image_sizes(width, height, compositor):
     K = torch.tensor([[float(width), 0, width / 2], [0, float(width), height / 2], [0, 0, 1]])
-    out, grads = render_and_backprop(scene(80, seed=4), K=K, width=width, height=height)
+    out, grads = render_and_backprop(scene(80, seed=4), K=K, width=width, height=height, compositor=compositor)
     assert_finite(out, grads)
     assert out.rgb.shape == (height, width, 3) and out.depth_normal.shape == (height, width, 3)
     assert out.alpha.max() > 0
 
 
-def test_city_scale_coordinates_float32():
+def test_city_scale_coordinates_float32(compositor):
     offset = torch.tensor([1e5, -1e5, 50.0])
     params = scene(60, seed=5)
-    near_out, _ = render_and_backprop(params)
+    near_out, _ = render_and_backprop(params, compositor=compositor)
     params[0] = params[0] + offset
     viewmat = torch.eye(4)
     viewmat[:3, 3] = -offset
-    out, grads = render_and_backprop(params, viewmat=viewmat)
+    out, grads = render_and_backprop(params, viewmat=viewmat, compositor=compositor)
     assert_finite(out, grads)
     # float32 stores 1e5 to ~8 mm; the image may move by that much, not more
     assert (out.alpha - near_out.alpha).abs().mean() < 0.02
@@ -137,7 +143,7 @@ def test_city_scale_coordinates_float32():
     assert covered.sum() > 50 and (out.depth - near_out.depth)[covered].abs().max() < 0.05
 
 
-def test_camera_looking_straight_down():
+def test_camera_looking_straight_down(compositor):
     g = torch.Generator().manual_seed(6)
     n = 300
     means = torch.cat([torch.rand(n, 2, generator=g) * 4 - 2, torch.zeros(n, 1)], 1)  # ground z = 0
@@ -148,7 +154,7 @@ def test_camera_looking_straight_down():
     viewmat[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
     viewmat[:3, 3] = torch.tensor([0.0, 0.0, 10.0])
     params = [means, quats, scales, torch.full((n,), 0.8), torch.rand(n, 3, generator=g)]
-    out, grads = render_and_backprop(params, viewmat=viewmat)
+    out, grads = render_and_backprop(params, viewmat=viewmat, compositor=compositor)
     assert_finite(out, grads)
     solid = out.alpha[..., 0] > 0.99
     assert solid.sum() > 100
@@ -192,14 +198,14 @@ def test_rgb_alone_composites_only_colour_channels(monkeypatch):
     params = scene(20)
     colors5 = torch.rand(20, 5)
     monkeypatch.setattr(api_module, "gaussian_normals", no_geometry)
-    out = rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, use_compile=False)
+    torch_only = dict(use_compile=False, compositor="torch")
+    out = rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, **torch_only)
     assert out.alpha is None and out.depth is None and out.rgb.shape == (24, 32, 5)
     monkeypatch.undo()
     monkeypatch.setattr(api_module, "composite", spy)
-    rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=("alpha",), use_compile=False)
-    rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=("rgb", "depth"),
-              use_compile=False)
-    rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=ALL, use_compile=False)
+    rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=("alpha",), **torch_only)
+    rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=("rgb", "depth"), **torch_only)
+    rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=ALL, **torch_only)
     assert seen == [5, 0, 6, 5 + 3 + 1 + 1]
 
 
@@ -216,6 +222,7 @@ def test_rgb_alone_composites_only_colour_channels(monkeypatch):
     (lambda a: a.update(near=2.0, far=1.0), "near < far"),
     (lambda a: a.update(depth_normal_from="normal"), "depth_normal_from"),
     (lambda a: a.update(backend="vulkan"), "unknown rasterizer backend 'vulkan'"),
+    (lambda a: a.update(compositor="cuda"), "compositor must be one of"),
     (lambda a: a.update(means=torch.zeros(5, 3, dtype=torch.int64)), "floating-point"),
 ])
 def test_bad_input_is_one_clear_error(change, match):
@@ -237,6 +244,8 @@ def test_renderer_config_builds_a_camera_renderer():
     assert out.rgb.shape == (24, 32, 3) and out.alpha.shape == (24, 32, 1)
     with pytest.raises(HicoError, match="rasterizer backend"):
         RendererConfig(backend="nope").setup()
+    with pytest.raises(HicoError, match="renderer.compositor must be one of"):
+        RendererConfig(compositor="nope").setup()
 
 
 def test_compiled_compositor_matches_eager():
@@ -245,7 +254,7 @@ def test_compiled_compositor_matches_eager():
     outs = []
     for use_compile, ps in zip((False, True), leaves):
         out = rasterize(*ps, torch.eye(4), K32, 32, 24, outputs=("rgb", "alpha", "plane_depth"),
-                        use_compile=use_compile)
+                        use_compile=use_compile, compositor="torch")
         (out.rgb.square().sum() + out.plane_depth.sum()).backward()
         outs.append(out)
     assert not composite_module.KERNELS.failed

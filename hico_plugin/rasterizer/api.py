@@ -10,8 +10,9 @@ from torch import Tensor
 
 from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer.base import (
-    DEPTH_NORMAL_SOURCES, OUTPUT_NAMES, RASTERIZER_BACKENDS, RenderOutputs)
+    COMPOSITORS, DEPTH_NORMAL_SOURCES, OUTPUT_NAMES, RASTERIZER_BACKENDS, RenderOutputs)
 from hico_plugin.rasterizer.composite import composite
+from hico_plugin.rasterizer.fused import EXTENSION, composite_fused, fused_available
 from hico_plugin.rasterizer.geometry import (
     depth_to_normal, expected_depth, gaussian_normals, plane_depth)
 from hico_plugin.rasterizer.projection import project_gaussians
@@ -24,6 +25,7 @@ def rasterize(
     outputs: Iterable[str] = ("rgb",), background: Optional[Tensor] = None,
     near: float = 0.01, far: float = 1e10, tile_size: int = 16, backend: str = "torch",
     depth_normal_from: str = "plane_depth", use_compile: Optional[bool] = None,
+    compositor: str = "auto",
 ) -> RenderOutputs:
     """Render Gaussians into one camera (viewmat [4,4], K [3,3]) or C cameras ([C,4,4], [C,3,3]).
 
@@ -31,23 +33,27 @@ def rasterize(
     opacities [N] in [0,1]; colors [N,D] (any D); background [D] or None (black).
     ``outputs`` is any subset of rgb, alpha, depth, normal, distance, plane_depth, depth_normal
     (see RenderOutputs); only what is asked is computed. ``depth_normal_from`` picks the depth map
-    that ``depth_normal`` differentiates ("plane_depth" or "depth"). ``use_compile`` fuses the
-    compositor with torch.compile (None: on unless HICO_NO_COMPILE=1; the first call compiles).
+    that ``depth_normal`` differentiates ("plane_depth" or "depth"). ``compositor`` picks the torch
+    backend's blending kernel: "fused" (compiled C++ on CPU, early termination per pixel), "torch"
+    (vectorised torch, any device) or "auto" (fused on CPU when it builds, else torch).
+    ``use_compile`` fuses the torch compositor with torch.compile (None: on unless
+    HICO_NO_COMPILE=1; the first call compiles).
     Images come back [H,W,·] (or [C,H,W,·]); means2d [N,2] ([C,N,2]) and radii [N] ([C,N]).
     """
     outputs = frozenset(outputs)
     _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs,
-              background, near, far, tile_size, depth_normal_from)
+              background, near, far, tile_size, depth_normal_from, compositor)
     if use_compile is None:
         use_compile = os.environ.get("HICO_NO_COMPILE") != "1"
     render = RASTERIZER_BACKENDS.get(backend)
     return render(means, quats, scales, opacities, colors, viewmat, K, width, height,
                   outputs=outputs, background=background, near=near, far=far, tile_size=tile_size,
-                  depth_normal_from=depth_normal_from, use_compile=use_compile)
+                  depth_normal_from=depth_normal_from, use_compile=use_compile,
+                  compositor=compositor)
 
 
 def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs,
-              background, near, far, tile_size, depth_normal_from) -> None:
+              background, near, far, tile_size, depth_normal_from, compositor) -> None:
     tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                    viewmat=viewmat, K=K)
     for name, t in tensors.items():
@@ -85,6 +91,8 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
     if depth_normal_from not in DEPTH_NORMAL_SOURCES:
         raise HicoError(f"rasterize: depth_normal_from must be one of {list(DEPTH_NORMAL_SOURCES)},"
                         f" got '{depth_normal_from}'")
+    if compositor not in COMPOSITORS:
+        raise HicoError(f"rasterize: compositor must be one of {list(COMPOSITORS)}, got '{compositor}'")
 
 
 def geometry_channels(outputs: frozenset[str], depth_normal_from: str) -> tuple[bool, bool, bool]:
@@ -99,8 +107,8 @@ def geometry_channels(outputs: frozenset[str], depth_normal_from: str) -> tuple[
 
 @RASTERIZER_BACKENDS.register("torch")
 def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, *,
-                    outputs, background, near, far, tile_size, depth_normal_from, use_compile
-                    ) -> RenderOutputs:
+                    outputs, background, near, far, tile_size, depth_normal_from, use_compile,
+                    compositor) -> RenderOutputs:
     """The pure-torch backend (see base.py for the backend contract)."""
     batched = viewmat.dim() == 3
     viewmats = viewmat if batched else viewmat[None]
@@ -127,11 +135,13 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, 
 
     bins = bin_gaussians(means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii,
                          width, height, tile_size)
-    tiled, tiled_alpha = composite(
-        means2d.reshape(-1, 2), proj.conics.reshape(-1, 3),
-        opacities[None].expand(num_cams, -1).reshape(-1),
-        features.reshape(num_cams * n, features.shape[-1]),
-        bins, use_compile=use_compile)
+    flat = (means2d.reshape(-1, 2), proj.conics.reshape(-1, 3),
+            opacities[None].expand(num_cams, -1).reshape(-1),
+            features.reshape(num_cams * n, features.shape[-1]))
+    if use_fused(compositor, means.device):
+        tiled, tiled_alpha = composite_fused(*flat, bins)
+    else:
+        tiled, tiled_alpha = composite(*flat, bins, use_compile=use_compile)
     image = _untile(torch.cat([tiled, tiled_alpha[..., None]], -1), num_cams, bins, width, height)
     maps = dict(zip(["rgb", "normal", "distance", "z"], image[..., :-1].split(
         [colors.shape[1] if "rgb" in outputs else 0, 3 if need_normal else 0,
@@ -160,6 +170,22 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, 
         for name, image in result.images().items():
             setattr(result, name, image[0])
     return result
+
+
+def use_fused(compositor: str, device: torch.device) -> bool:
+    """Whether ``compositor`` resolves to the fused CPU kernel for tensors on ``device``."""
+    if compositor == "torch":
+        return False
+    on_cpu = device.type == "cpu"
+    if compositor == "auto":
+        return on_cpu and fused_available()
+    if not on_cpu:
+        raise HicoError(f"rasterize: compositor='fused' runs on CPU tensors, got {device}; use "
+                        "'torch' (or the gsplat backend) on a GPU")
+    if not fused_available():
+        raise HicoError(f"rasterize: compositor='fused' could not be built ({EXTENSION.error}); "
+                        "install a C++ compiler or use compositor='torch'")
+    return True
 
 
 def _untile(tiled: Tensor, num_cams: int, bins, width: int, height: int) -> Tensor:

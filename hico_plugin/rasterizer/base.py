@@ -6,7 +6,8 @@ A backend is a function registered in ``RASTERIZER_BACKENDS`` with exactly the s
     backend(means [N,3], quats [N,4], scales [N,3], opacities [N], colors [N,D],
             viewmat [4,4] | [C,4,4], K [3,3] | [C,3,3], width: int, height: int, *,
             outputs: frozenset[str], background: Tensor [D] | None, near: float, far: float,
-            tile_size: int, depth_normal_from: str, use_compile: bool) -> RenderOutputs
+            tile_size: int, depth_normal_from: str, use_compile: bool, compositor: str
+            ) -> RenderOutputs
 
 It returns a RenderOutputs shaped like the cameras it got (leading C only for a [C,4,4] viewmat).
 ``means2d`` must be the very tensor the images were computed from, so that ``retain_grad()`` on it
@@ -25,6 +26,9 @@ from hico_plugin.registry import Registry
 
 OUTPUT_NAMES = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "depth_normal")
 """Every image a backend can render; ``outputs=`` is any subset."""
+
+COMPOSITORS = ("auto", "fused", "torch")
+"""Blending kernels of the torch backend (see ``rasterize``); other backends bring their own."""
 
 DEPTH_NORMAL_SOURCES = ("plane_depth", "depth")
 """Which depth map ``depth_normal`` is back-projected from."""

@@ -15,7 +15,8 @@ smaller for fainter Gaussians); the reference keeps an ellipse whose integer rad
 where ours, testing the exact extent, may cull it (< 1 px of difference); ours also culls o <= 1/255.
 
 Needs gsplat (``pip install -e ".[cuda]"``), a CUDA torch and CUDA tensors; otherwise it raises one
-HicoError naming the fix. gsplat's kernels are float32 only. ``use_compile`` has no meaning here.
+HicoError naming the fix. gsplat's kernels are float32 only. ``use_compile`` and ``compositor``
+(the torch backend's blending kernels) have no meaning here.
 """
 
 from __future__ import annotations
@@ -61,8 +62,8 @@ def _nonzero_quats(quats: Tensor) -> Tensor:
 
 @RASTERIZER_BACKENDS.register("gsplat")
 def rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, *,
-                     outputs, background, near, far, tile_size, depth_normal_from, use_compile
-                     ) -> RenderOutputs:
+                     outputs, background, near, far, tile_size, depth_normal_from, use_compile,
+                     compositor) -> RenderOutputs:
     """The gsplat backend (see base.py for the backend contract)."""
     ops = load_gsplat_ops(means.device)
     if means.dtype != torch.float32:

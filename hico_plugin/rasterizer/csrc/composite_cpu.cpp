@@ -1,0 +1,265 @@
+// Fused CPU compositor: front-to-back alpha blending of binned Gaussians, one pixel at a time, with
+// per-pixel early termination, and its analytic backward (3DGS order: back to front, recovering each
+// transmittance by division). Same contract and cut-offs as composite.py's vectorised torch version:
+//
+//   means2d [G,2], conics [G,3] (a, b, c of [[a,b],[b,c]]), opacities [G], features [G,D],
+//   gaussian_ids [I] int64 sorted by (tile, depth), tile_offsets [T+1] int64
+//   -> features [T,P,D], alpha [T,P], final transmittance [T,P], rows drawn per pixel [T,P] int32
+//
+// A pair is skipped when sigma < 0 or alpha < alpha_min; alpha is clamped at alpha_max; a pixel stops
+// at the first pair whose transmittance after it would be <= t_min (that pair is not drawn).
+// Tiles are handed out dynamically (sky tiles are empty, facade tiles hold thousands of rows) to
+// at::parallel_for's threads; the backward accumulates per thread and sums at the end.
+
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <vector>
+
+namespace {
+
+template <typename scalar_t>
+struct TileRows {
+  // The rows of one tile gathered into contiguous arrays: x, y, a, b, c, opacity, features, and
+  // cut = log(opacity / alpha_min): a pair with sigma > cut has alpha < alpha_min, so most pairs of
+  // a tile (pixels outside the row's ellipse) are rejected without an exp.
+  std::vector<scalar_t> mx, my, ca, cb, cc, op, cut, feat;
+
+  void gather(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opacities,
+              const scalar_t* features, const int64_t* ids, int64_t begin, int64_t count,
+              int64_t dim, scalar_t alpha_min) {
+    mx.resize(count); my.resize(count); ca.resize(count); cb.resize(count); cc.resize(count);
+    op.resize(count); cut.resize(count); feat.resize(count * dim);
+    for (int64_t r = 0; r < count; ++r) {
+      const int64_t g = ids[begin + r];
+      mx[r] = means2d[2 * g]; my[r] = means2d[2 * g + 1];
+      ca[r] = conics[3 * g]; cb[r] = conics[3 * g + 1]; cc[r] = conics[3 * g + 2];
+      op[r] = opacities[g];
+      // a hair above the exact cut, so rounding never rejects a pair the alpha test would keep
+      cut[r] = op[r] > 0 ? std::log(op[r] / alpha_min) + scalar_t(1e-3) : scalar_t(-1);
+      for (int64_t d = 0; d < dim; ++d) feat[r * dim + d] = features[g * dim + d];
+    }
+  }
+};
+
+struct Grid {
+  int64_t tiles_x, tiles_per_cam, tile_size;
+  // Pixel-centre coordinates of local pixel p of tile t.
+  template <typename scalar_t>
+  void pixel(int64_t t, int64_t p, scalar_t& px, scalar_t& py) const {
+    const int64_t in_cam = t % tiles_per_cam;
+    px = scalar_t((in_cam % tiles_x) * tile_size + p % tile_size) + scalar_t(0.5);
+    py = scalar_t((in_cam / tiles_x) * tile_size + p / tile_size) + scalar_t(0.5);
+  }
+};
+
+// Runs fn(tile, thread) over all tiles, handing tiles out one at a time.
+template <typename Fn>
+void for_each_tile(int64_t num_tiles, Fn fn) {
+  std::atomic<int64_t> next{0};
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), num_tiles));
+  at::parallel_for(0, threads, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t worker = begin; worker < end; ++worker) {
+      for (int64_t t = next++; t < num_tiles; t = next++) fn(t, worker);
+    }
+  });
+}
+
+template <typename scalar_t>
+void forward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                  const at::Tensor& features, const at::Tensor& gaussian_ids,
+                  const at::Tensor& tile_offsets, const Grid grid, double alpha_min,
+                  double alpha_max, double t_min, at::Tensor& out, at::Tensor& acc,
+                  at::Tensor& final_t, at::Tensor& n_drawn) {
+  const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
+  const int64_t pixels = grid.tile_size * grid.tile_size;
+  const scalar_t* m = means2d.data_ptr<scalar_t>();
+  const scalar_t* cn = conics.data_ptr<scalar_t>();
+  const scalar_t* o = opacities.data_ptr<scalar_t>();
+  const scalar_t* f = features.data_ptr<scalar_t>();
+  const int64_t* ids = gaussian_ids.data_ptr<int64_t>();
+  const int64_t* offsets = tile_offsets.data_ptr<int64_t>();
+  scalar_t* out_p = out.data_ptr<scalar_t>();
+  scalar_t* acc_p = acc.data_ptr<scalar_t>();
+  scalar_t* t_p = final_t.data_ptr<scalar_t>();
+  int32_t* n_p = n_drawn.data_ptr<int32_t>();
+  const scalar_t a_min = alpha_min, a_max = alpha_max, tmin = t_min;
+
+  for_each_tile(num_tiles, [&](int64_t t, int64_t) {
+    const int64_t begin = offsets[t], count = offsets[t + 1] - begin;
+    TileRows<scalar_t> rows;
+    rows.gather(m, cn, o, f, ids, begin, count, dim, a_min);
+    std::vector<scalar_t> color(dim);
+    for (int64_t p = 0; p < pixels; ++p) {
+      scalar_t px, py;
+      grid.pixel(t, p, px, py);
+      std::fill(color.begin(), color.end(), scalar_t(0));
+      scalar_t trans = 1, weight_sum = 0;
+      int32_t drawn = 0;
+      for (int64_t r = 0; r < count; ++r) {
+        const scalar_t dx = px - rows.mx[r], dy = py - rows.my[r];
+        const scalar_t sigma =
+            scalar_t(0.5) * (rows.ca[r] * dx * dx + rows.cc[r] * dy * dy) + rows.cb[r] * dx * dy;
+        if (!(sigma >= 0) || sigma > rows.cut[r]) continue;  // (NaN fails the first test)
+        const scalar_t alpha = std::min(a_max, rows.op[r] * std::exp(-sigma));
+        if (!(alpha >= a_min)) continue;
+        const scalar_t next = trans * (1 - alpha);
+        if (next <= tmin) break;
+        const scalar_t w = alpha * trans;
+        const scalar_t* fr = &rows.feat[r * dim];
+        for (int64_t d = 0; d < dim; ++d) color[d] += w * fr[d];
+        weight_sum += w;
+        trans = next;
+        drawn = int32_t(r + 1);
+      }
+      const int64_t pix = t * pixels + p;
+      for (int64_t d = 0; d < dim; ++d) out_p[pix * dim + d] = color[d];
+      acc_p[pix] = weight_sum;
+      t_p[pix] = trans;
+      n_p[pix] = drawn;
+    }
+  });
+}
+
+template <typename scalar_t>
+void backward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                   const at::Tensor& features, const at::Tensor& gaussian_ids,
+                   const at::Tensor& tile_offsets, const Grid grid, double alpha_min,
+                   double alpha_max, const at::Tensor& final_t, const at::Tensor& n_drawn,
+                   const at::Tensor& grad_out, const at::Tensor& grad_acc, at::Tensor& grads) {
+  // grads [threads, G, 6 + D]: d means2d (2), d conics (3), d opacity (1), d features (D).
+  const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
+  const int64_t pixels = grid.tile_size * grid.tile_size, stride = 6 + dim;
+  const int64_t per_thread = grads.size(1) * stride;
+  const scalar_t* m = means2d.data_ptr<scalar_t>();
+  const scalar_t* cn = conics.data_ptr<scalar_t>();
+  const scalar_t* o = opacities.data_ptr<scalar_t>();
+  const scalar_t* f = features.data_ptr<scalar_t>();
+  const int64_t* ids = gaussian_ids.data_ptr<int64_t>();
+  const int64_t* offsets = tile_offsets.data_ptr<int64_t>();
+  const scalar_t* t_p = final_t.data_ptr<scalar_t>();
+  const int32_t* n_p = n_drawn.data_ptr<int32_t>();
+  const scalar_t* go = grad_out.data_ptr<scalar_t>();
+  const scalar_t* ga = grad_acc.data_ptr<scalar_t>();
+  scalar_t* g_all = grads.data_ptr<scalar_t>();
+  const scalar_t a_min = alpha_min, a_max = alpha_max;
+
+  for_each_tile(num_tiles, [&](int64_t t, int64_t worker) {
+    const int64_t begin = offsets[t], count = offsets[t + 1] - begin;
+    int32_t deepest = 0;
+    for (int64_t p = 0; p < pixels; ++p) deepest = std::max(deepest, n_p[t * pixels + p]);
+    if (deepest == 0) return;
+    TileRows<scalar_t> rows;
+    rows.gather(m, cn, o, f, ids, begin, deepest, dim, a_min);
+    std::vector<scalar_t> g_rows(deepest * stride, scalar_t(0));  // per-row, summed over pixels
+    std::vector<scalar_t> behind(dim + 1);  // colour (and alpha) composited behind the current row
+    for (int64_t p = 0; p < pixels; ++p) {
+      const int64_t pix = t * pixels + p;
+      const int32_t drawn = n_p[pix];
+      if (drawn == 0) continue;
+      scalar_t px, py;
+      grid.pixel(t, p, px, py);
+      const scalar_t* g_color = &go[pix * dim];
+      const scalar_t g_alpha = ga[pix];
+      std::fill(behind.begin(), behind.end(), scalar_t(0));
+      scalar_t trans = t_p[pix];
+      for (int64_t r = drawn - 1; r >= 0; --r) {
+        const scalar_t dx = px - rows.mx[r], dy = py - rows.my[r];
+        const scalar_t sigma =
+            scalar_t(0.5) * (rows.ca[r] * dx * dx + rows.cc[r] * dy * dy) + rows.cb[r] * dx * dy;
+        if (!(sigma >= 0) || sigma > rows.cut[r]) continue;
+        const scalar_t falloff = std::exp(-sigma);
+        const scalar_t raw = rows.op[r] * falloff;
+        const scalar_t alpha = std::min(a_max, raw);
+        if (!(alpha >= a_min)) continue;
+        trans /= (1 - alpha);  // transmittance in front of row r
+        const scalar_t w = alpha * trans;
+        scalar_t* g = &g_rows[r * stride];
+        const scalar_t* fr = &rows.feat[r * dim];
+        // d out / d alpha_r = T_r (f_r - behind_r) per channel; the alpha channel has f = 1.
+        scalar_t g_a = g_alpha * (1 - behind[dim]);
+        for (int64_t d = 0; d < dim; ++d) {
+          g[6 + d] += w * g_color[d];
+          g_a += g_color[d] * (fr[d] - behind[d]);
+          behind[d] = alpha * fr[d] + (1 - alpha) * behind[d];
+        }
+        behind[dim] = alpha + (1 - alpha) * behind[dim];
+        g_a *= trans;
+        if (raw > a_max) continue;  // clamped: no gradient to opacity or shape
+        g[5] += g_a * falloff;
+        const scalar_t g_sigma = -g_a * alpha;
+        g[0] -= g_sigma * (rows.ca[r] * dx + rows.cb[r] * dy);
+        g[1] -= g_sigma * (rows.cc[r] * dy + rows.cb[r] * dx);
+        g[2] += g_sigma * scalar_t(0.5) * dx * dx;
+        g[3] += g_sigma * dx * dy;
+        g[4] += g_sigma * scalar_t(0.5) * dy * dy;
+      }
+    }
+    scalar_t* g_thread = g_all + worker * per_thread;
+    for (int64_t r = 0; r < deepest; ++r) {
+      scalar_t* dst = g_thread + ids[begin + r] * stride;
+      const scalar_t* src = &g_rows[r * stride];
+      for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
+    }
+  });
+}
+
+void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                  const at::Tensor& features, const at::Tensor& gaussian_ids,
+                  const at::Tensor& tile_offsets) {
+  for (const at::Tensor* t : {&means2d, &conics, &opacities, &features, &gaussian_ids, &tile_offsets}) {
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous(), "composite_cpu: inputs must be contiguous CPU tensors");
+  }
+  TORCH_CHECK(gaussian_ids.scalar_type() == at::kLong && tile_offsets.scalar_type() == at::kLong,
+              "composite_cpu: gaussian_ids and tile_offsets must be int64");
+}
+
+std::vector<at::Tensor> forward(const at::Tensor& means2d, const at::Tensor& conics,
+                                const at::Tensor& opacities, const at::Tensor& features,
+                                const at::Tensor& gaussian_ids, const at::Tensor& tile_offsets,
+                                int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,
+                                double alpha_min, double alpha_max, double t_min) {
+  check_inputs(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
+  const int64_t num_tiles = tile_offsets.size(0) - 1, pixels = tile_size * tile_size;
+  auto out = at::empty({num_tiles, pixels, features.size(1)}, features.options());
+  auto acc = at::empty({num_tiles, pixels}, features.options());
+  auto final_t = at::empty({num_tiles, pixels}, features.options());
+  auto n_drawn = at::empty({num_tiles, pixels}, features.options().dtype(at::kInt));
+  const Grid grid{tiles_x, tiles_per_cam, tile_size};
+  AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_forward", [&] {
+    forward_impl<scalar_t>(means2d, conics, opacities, features, gaussian_ids, tile_offsets, grid,
+                           alpha_min, alpha_max, t_min, out, acc, final_t, n_drawn);
+  });
+  return {out, acc, final_t, n_drawn};
+}
+
+std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& conics,
+                                 const at::Tensor& opacities, const at::Tensor& features,
+                                 const at::Tensor& gaussian_ids, const at::Tensor& tile_offsets,
+                                 int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,
+                                 double alpha_min, double alpha_max, const at::Tensor& final_t,
+                                 const at::Tensor& n_drawn, const at::Tensor& grad_out,
+                                 const at::Tensor& grad_acc) {
+  check_inputs(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
+  TORCH_CHECK(grad_out.is_contiguous() && grad_acc.is_contiguous(), "composite_cpu: grads must be contiguous");
+  const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), num_tiles));
+  auto grads = at::zeros({threads, features.size(0), 6 + dim}, features.options());
+  const Grid grid{tiles_x, tiles_per_cam, tile_size};
+  AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_backward", [&] {
+    backward_impl<scalar_t>(means2d, conics, opacities, features, gaussian_ids, tile_offsets, grid,
+                            alpha_min, alpha_max, final_t, n_drawn, grad_out, grad_acc, grads);
+  });
+  auto total = grads.sum(0);
+  return {total.slice(1, 0, 2), total.slice(1, 2, 5), total.select(1, 5), total.slice(1, 6)};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "fused CPU compositor, forward");
+  m.def("backward", &backward, "fused CPU compositor, backward");
+}

@@ -1,0 +1,86 @@
+"""The fused CPU compositor: csrc/composite_cpu.cpp, built on first use with torch's C++ extension
+loader (needs a C++ compiler, as torch.compile on CPU does; cached under TORCH_EXTENSIONS_DIR).
+
+Same contract as ``composite.composite`` (the vectorised torch version, which stays the reference
+and the fallback): one pass per pixel with early termination instead of every (pixel, row) pair of
+the tile, so deep tiles cost what is visible, not what is binned.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+from hico_plugin.rasterizer.composite import ALPHA_MAX, LOG_T_MIN
+from hico_plugin.rasterizer.projection import ALPHA_MIN
+from hico_plugin.rasterizer.tiling import TileBins
+
+SOURCE = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
+T_MIN = float(torch.tensor(LOG_T_MIN, dtype=torch.float64).exp())  # the torch version's cut, 1e-4
+
+
+class _Extension:
+    """The compiled module, built once per process (None when building failed)."""
+
+    def __init__(self):
+        self.module: ModuleType | None = None
+        self.error: str | None = None
+
+    def get(self) -> ModuleType | None:
+        if self.module is None and self.error is None:
+            if os.environ.get("HICO_NO_FUSED") == "1":
+                self.error = "disabled by HICO_NO_FUSED=1"
+                return None
+            try:
+                from torch.utils.cpp_extension import load
+                self.module = load(name="hico_composite_cpu", sources=[str(SOURCE)],
+                                   extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"],
+                                   verbose=False)
+            except Exception as err:  # noqa: BLE001 - no compiler / headers: use the torch compositor
+                self.error = f"{type(err).__name__}: {str(err).strip().splitlines()[-1] if str(err).strip() else ''}"
+                warnings.warn("the fused CPU compositor could not be built, using the torch one "
+                              f"(slower): {self.error}")
+        return self.module
+
+
+EXTENSION = _Extension()
+
+
+def fused_available() -> bool:
+    """Whether the fused CPU compositor is built (building it on the first call)."""
+    return EXTENSION.get() is not None
+
+
+class _FusedComposite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, bins):
+        ext = EXTENSION.get()
+        grid = (bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size)
+        inputs = [t.contiguous() for t in (means2d, conics, opacities, features)]
+        out, acc, final_t, n_drawn = ext.forward(*inputs, bins.gaussian_ids, bins.tile_offsets,
+                                                 *grid, ALPHA_MIN, ALPHA_MAX, T_MIN)
+        ctx.save_for_backward(*inputs, final_t, n_drawn)
+        ctx.bins, ctx.grid = bins, grid
+        return out, acc
+
+    @staticmethod
+    def backward(ctx, grad_out, grad_acc):
+        means2d, conics, opacities, features, final_t, n_drawn = ctx.saved_tensors
+        bins = ctx.bins
+        grads = EXTENSION.get().backward(
+            means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_offsets, *ctx.grid,
+            ALPHA_MIN, ALPHA_MAX, final_t, n_drawn, grad_out.contiguous(), grad_acc.contiguous())
+        return (*grads, None)
+
+
+def composite_fused(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
+                    bins: TileBins) -> tuple[Tensor, Tensor]:
+    """means2d [G,2], conics [G,3], opacities [G], features [G,D] -> features [T,P,D], alpha [T,P]
+    (T tiles camera-major, P = tile_size^2 pixels row-major); CPU tensors, float32 or float64.
+    Differentiable w.r.t. the four inputs. Call ``fused_available()`` first."""
+    return _FusedComposite.apply(means2d, conics, opacities, features, bins)

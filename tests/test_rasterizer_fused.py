@@ -1,0 +1,105 @@
+"""The fused CPU compositor against the vectorised torch one, and what happens when it cannot be built."""
+
+import pytest
+import torch
+
+from hico_plugin.errors import HicoError
+from hico_plugin.rasterizer import RendererConfig, rasterize
+from hico_plugin.rasterizer import fused as fused_module
+from hico_plugin.rasterizer.composite import composite
+from hico_plugin.rasterizer.fused import composite_fused, fused_available
+from hico_plugin.rasterizer.projection import project_gaussians
+from hico_plugin.rasterizer.renderer import default_tile_size
+from hico_plugin.rasterizer.tiling import bin_gaussians
+
+K = torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]])
+
+
+def binned_scene(n, seed, tile_size, num_cams=2, dtype=torch.float32):
+    """Flattened compositor inputs of n Gaussians in front of num_cams cameras, 64x48 pixels."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.cat([torch.rand(n, 2, generator=g) * 2 - 1, torch.rand(n, 1, generator=g) * 2 + 2], 1)
+    quats, scales = torch.randn(n, 4, generator=g), torch.exp(torch.randn(n, 3, generator=g) * 0.5 - 3)
+    opacities = torch.rand(n, generator=g)
+    viewmats = torch.eye(4).repeat(num_cams, 1, 1)
+    viewmats[:, 0, 3] = torch.linspace(-0.2, 0.2, num_cams)
+    proj = project_gaussians(*(t.to(dtype) for t in (means, quats, scales, opacities, viewmats)),
+                             K[None].repeat(num_cams, 1, 1).to(dtype), 64, 48)
+    bins = bin_gaussians(proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii,
+                         64, 48, tile_size)
+    features = torch.rand(num_cams * n, 5, generator=g, dtype=dtype)
+    return [proj.means2d.reshape(-1, 2), proj.conics.reshape(-1, 3),
+            opacities.to(dtype).repeat(num_cams), features], bins
+
+
+def outputs_and_grads(fn, inputs, bins, seed=0):
+    leaves = [t.detach().clone().requires_grad_() for t in inputs]
+    out, acc = fn(*leaves, bins)
+    g = torch.Generator().manual_seed(seed)
+    cot_out = torch.randn(out.shape, generator=g, dtype=out.dtype)
+    cot_acc = torch.randn(acc.shape, generator=g, dtype=acc.dtype)
+    ((out * cot_out).sum() + (acc * cot_acc).sum()).backward()
+    return out, acc, [t.grad for t in leaves]
+
+
+@pytest.mark.parametrize("tile_size", [4, 16])
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_fused_matches_torch_compositor_with_random_cotangents(tile_size, dtype, tol):
+    inputs, bins = binned_scene(600, seed=tile_size, tile_size=tile_size, dtype=dtype)
+    assert fused_available(), fused_module.EXTENSION.error
+    want = outputs_and_grads(composite, inputs, bins)
+    got = outputs_and_grads(composite_fused, inputs, bins)
+    assert want[1].max() > 0.99  # deep enough that pixels stop early
+    torch.testing.assert_close(got[0], want[0], atol=tol, rtol=tol)
+    torch.testing.assert_close(got[1], want[1], atol=tol, rtol=tol)
+    for name, a, b in zip(("means2d", "conics", "opacities", "features"), got[2], want[2]):
+        scale = b.abs().max()
+        torch.testing.assert_close(a / scale, b / scale, atol=tol, rtol=0, msg=name)
+
+
+def test_fused_gradcheck_float64():
+    inputs, bins = binned_scene(12, seed=5, tile_size=16, num_cams=1, dtype=torch.float64)
+    # Opacities away from the 0.99 clamp and the 1/255 cut keep the function smooth at eps.
+    inputs[2] = 0.2 + 0.6 * inputs[2]
+    leaves = [t.detach().clone().requires_grad_() for t in inputs]
+    assert torch.autograd.gradcheck(lambda *x: composite_fused(*x, bins), leaves, eps=1e-6,
+                                    atol=1e-6, rtol=1e-4)
+
+
+def test_fused_threads_do_not_change_the_result():
+    inputs, bins = binned_scene(400, seed=2, tile_size=8)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = outputs_and_grads(composite_fused, inputs, bins)
+        torch.set_num_threads(max(2, threads))
+        many = outputs_and_grads(composite_fused, inputs, bins)
+    finally:
+        torch.set_num_threads(threads)
+    torch.testing.assert_close(many[0], one[0], atol=0, rtol=0)  # each pixel is one thread's
+    for a, b in zip(many[2], one[2]):  # per-thread sums add in another order
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+
+
+def test_unbuildable_fused_compositor(monkeypatch):
+    """auto falls back to the torch compositor (and its tile size); an explicit 'fused' is one error."""
+    monkeypatch.setattr(fused_module, "EXTENSION", fused_module._Extension())
+    monkeypatch.setattr(fused_module.EXTENSION, "error", "no C++ compiler")
+    monkeypatch.setattr("hico_plugin.rasterizer.api.EXTENSION", fused_module.EXTENSION)
+    assert default_tile_size("torch", "auto", torch.device("cpu")) == 4
+    means = torch.tensor([[0.0, 0.0, 2.0]])
+    args = (means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1), torch.ones(1),
+            torch.ones(1, 3), torch.eye(4), K, 64, 48)
+    auto = rasterize(*args, use_compile=False)
+    assert auto.rgb.max() > 0.9
+    with pytest.raises(HicoError, match="compositor='fused' could not be built \\(no C\\+\\+ compiler\\)"):
+        rasterize(*args, compositor="fused")
+
+
+def test_default_tile_sizes():
+    assert fused_available()
+    cpu = torch.device("cpu")
+    assert default_tile_size("torch", "auto", cpu) == 16
+    assert default_tile_size("torch", "torch", cpu) == 4
+    assert default_tile_size("gsplat", "auto", cpu) == 16
+    assert RendererConfig().compositor == "auto"
