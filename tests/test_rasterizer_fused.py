@@ -7,7 +7,7 @@ from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer import RendererConfig, rasterize
 from hico_plugin.rasterizer import fused as fused_module
 from hico_plugin.rasterizer.composite import composite
-from hico_plugin.rasterizer.fused import composite_fused, fused_available
+from hico_plugin.rasterizer.fused import bin_gaussians_fused, composite_fused, fused_available
 from hico_plugin.rasterizer.projection import project_gaussians
 from hico_plugin.rasterizer.renderer import default_tile_size
 from hico_plugin.rasterizer.tiling import bin_gaussians
@@ -15,21 +15,31 @@ from hico_plugin.rasterizer.tiling import bin_gaussians
 K = torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]])
 
 
-def binned_scene(n, seed, tile_size, num_cams=2, dtype=torch.float32):
-    """Flattened compositor inputs of n Gaussians in front of num_cams cameras, 64x48 pixels."""
+def projected_scene(n, seed, num_cams=2, dtype=torch.float32, spread=1.0, log_scale=-3.0):
+    """n random Gaussians projected into num_cams cameras of 64x48 pixels; returns the projection
+    and the opacities."""
     g = torch.Generator().manual_seed(seed)
-    means = torch.cat([torch.rand(n, 2, generator=g) * 2 - 1, torch.rand(n, 1, generator=g) * 2 + 2], 1)
-    quats, scales = torch.randn(n, 4, generator=g), torch.exp(torch.randn(n, 3, generator=g) * 0.5 - 3)
+    means = torch.cat([(torch.rand(n, 2, generator=g) * 2 - 1) * spread,
+                       torch.rand(n, 1, generator=g) * 2 + 2], 1)
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 0.5 + log_scale)
     opacities = torch.rand(n, generator=g)
     viewmats = torch.eye(4).repeat(num_cams, 1, 1)
     viewmats[:, 0, 3] = torch.linspace(-0.2, 0.2, num_cams)
     proj = project_gaussians(*(t.to(dtype) for t in (means, quats, scales, opacities, viewmats)),
                              K[None].repeat(num_cams, 1, 1).to(dtype), 64, 48)
+    return proj, opacities.to(dtype)
+
+
+def binned_scene(n, seed, tile_size, num_cams=2, dtype=torch.float32):
+    """Flattened compositor inputs of n Gaussians in front of num_cams cameras, 64x48 pixels."""
+    g = torch.Generator().manual_seed(seed + 1000)
+    proj, opacities = projected_scene(n, seed, num_cams, dtype)
     bins = bin_gaussians(proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii,
                          64, 48, tile_size)
     features = torch.rand(num_cams * n, 5, generator=g, dtype=dtype)
     return [proj.means2d.reshape(-1, 2), proj.conics.reshape(-1, 3),
-            opacities.to(dtype).repeat(num_cams), features], bins
+            opacities.repeat(num_cams), features], bins
 
 
 def outputs_and_grads(fn, inputs, bins, seed=0):
@@ -103,3 +113,27 @@ def test_default_tile_sizes():
     assert default_tile_size("torch", "torch", cpu) == 4
     assert default_tile_size("gsplat", "auto", cpu) == 16
     assert RendererConfig().compositor == "auto"
+
+
+@pytest.mark.parametrize("tile_size", [1, 4, 16, 64])
+@pytest.mark.parametrize("spread,log_scale", [(1.0, -3.0), (0.3, -1.0), (1e4, -3.0), (1.0, -12.0)])
+def test_fused_binning_equals_torch_binning(tile_size, spread, log_scale):
+    """Same intersections in the same (tile, depth) order: dense, huge, far off-image, sub-pixel."""
+    assert fused_available()
+    proj, _ = projected_scene(500, seed=tile_size, num_cams=3, spread=spread, log_scale=log_scale)
+    args = (proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii, 64, 48,
+            tile_size)
+    want, got = bin_gaussians(*args), bin_gaussians_fused(*args)
+    for name in ("gaussian_ids", "tile_ids", "tile_offsets"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+    assert (got.tiles_x, got.tiles_y, got.tile_size) == (want.tiles_x, want.tiles_y, want.tile_size)
+    if spread == 1.0 and log_scale == -3.0:
+        assert want.gaussian_ids.numel() > 500  # the case is not vacuous
+
+
+def test_fused_binning_of_nothing():
+    proj, _ = projected_scene(0, seed=0, num_cams=2)
+    bins = bin_gaussians_fused(proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths,
+                               proj.radii, 64, 48, 16)
+    assert bins.gaussian_ids.numel() == 0 and bins.tile_offsets.shape == (2 * 4 * 3 + 1,)
+    assert (bins.tile_offsets == 0).all()

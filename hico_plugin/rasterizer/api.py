@@ -12,7 +12,8 @@ from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer.base import (
     COMPOSITORS, DEPTH_NORMAL_SOURCES, OUTPUT_NAMES, RASTERIZER_BACKENDS, RenderOutputs)
 from hico_plugin.rasterizer.composite import composite
-from hico_plugin.rasterizer.fused import EXTENSION, composite_fused, fused_available
+from hico_plugin.rasterizer.fused import (
+    EXTENSION, bin_gaussians_fused, composite_fused, fused_available)
 from hico_plugin.rasterizer.geometry import (
     depth_to_normal, expected_depth, gaussian_normals, plane_depth)
 from hico_plugin.rasterizer.projection import project_gaussians
@@ -34,8 +35,8 @@ def rasterize(
     ``outputs`` is any subset of rgb, alpha, depth, normal, distance, plane_depth, depth_normal
     (see RenderOutputs); only what is asked is computed. ``depth_normal_from`` picks the depth map
     that ``depth_normal`` differentiates ("plane_depth" or "depth"). ``compositor`` picks the torch
-    backend's blending kernel: "fused" (compiled C++ on CPU, early termination per pixel), "torch"
-    (vectorised torch, any device) or "auto" (fused on CPU when it builds, else torch).
+    backend's binning and blending kernels: "fused" (compiled C++ on CPU, early termination per
+    pixel), "torch" (vectorised torch, any device) or "auto" (fused on CPU when it builds).
     ``use_compile`` fuses the torch compositor with torch.compile (None: on unless
     HICO_NO_COMPILE=1; the first call compiles).
     Images come back [H,W,·] (or [C,H,W,·]); means2d [N,2] ([C,N,2]) and radii [N] ([C,N]).
@@ -133,12 +134,14 @@ def rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, 
         channels.append(proj.depths[..., None])
     features = torch.cat(channels, -1) if channels else means.new_zeros(num_cams, n, 0)
 
-    bins = bin_gaussians(means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii,
-                         width, height, tile_size)
+    fused = use_fused(compositor, means.device)
+    bin_fn = bin_gaussians_fused if fused else bin_gaussians
+    bins = bin_fn(means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii,
+                  width, height, tile_size)
     flat = (means2d.reshape(-1, 2), proj.conics.reshape(-1, 3),
             opacities[None].expand(num_cams, -1).reshape(-1),
             features.reshape(num_cams * n, features.shape[-1]))
-    if use_fused(compositor, means.device):
+    if fused:
         tiled, tiled_alpha = composite_fused(*flat, bins)
     else:
         tiled, tiled_alpha = composite(*flat, bins, use_compile=use_compile)

@@ -1,9 +1,11 @@
-"""The fused CPU compositor: csrc/composite_cpu.cpp, built on first use with torch's C++ extension
+"""The fused CPU kernels: csrc/composite_cpu.cpp, built on first use with torch's C++ extension
 loader (needs a C++ compiler, as torch.compile on CPU does; cached under TORCH_EXTENSIONS_DIR).
 
-Same contract as ``composite.composite`` (the vectorised torch version, which stays the reference
-and the fallback): one pass per pixel with early termination instead of every (pixel, row) pair of
-the tile, so deep tiles cost what is visible, not what is binned.
+``composite_fused`` has the contract of ``composite.composite`` (the vectorised torch version, which
+stays the reference and the fallback): one pass per pixel with early termination instead of every
+(pixel, row) pair of the tile, so deep tiles cost what is visible, not what is binned.
+``bin_gaussians_fused`` returns exactly what ``tiling.bin_gaussians`` does, without the
+intermediate tensors of every candidate (Gaussian, tile) pair.
 """
 
 from __future__ import annotations
@@ -76,6 +78,24 @@ class _FusedComposite(torch.autograd.Function):
             means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_offsets, *ctx.grid,
             ALPHA_MIN, ALPHA_MAX, final_t, n_drawn, grad_out.contiguous(), grad_acc.contiguous())
         return (*grads, None)
+
+
+def bin_gaussians_fused(means2d: Tensor, conics: Tensor, reach: Tensor, extents: Tensor,
+                        depths: Tensor, radii: Tensor, width: int, height: int,
+                        tile_size: int) -> TileBins:
+    """The arguments and result of ``tiling.bin_gaussians`` (CPU tensors). Call ``fused_available()``
+    first."""
+    num_cams, n = depths.shape
+    with torch.no_grad():
+        flat_radii = radii.reshape(-1).to(torch.int32).contiguous()
+        order = torch.argsort(depths.reshape(-1), stable=True)
+        order = order[flat_radii[order] > 0].contiguous()
+        gaussian_ids, tile_ids, tile_offsets = EXTENSION.get().bin(
+            means2d.detach().reshape(-1, 2).contiguous(), conics.detach().reshape(-1, 3).contiguous(),
+            reach.detach().contiguous(), extents.detach().reshape(-1, 2).contiguous(), flat_radii,
+            order, num_cams, n, width, height, tile_size)
+    return TileBins(gaussian_ids, tile_ids, tile_offsets, -(-width // tile_size),
+                    -(-height // tile_size), tile_size)
 
 
 def composite_fused(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,

@@ -17,6 +17,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 namespace {
@@ -257,9 +258,141 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
   return {total.slice(1, 0, 2), total.slice(1, 2, 5), total.select(1, 5), total.slice(1, 6)};
 }
 
+// ----- binning --------------------------------------------------------------------------------------
+// The same intersections as tiling.py's vectorised bin_gaussians, in the same order: Gaussians are
+// visited in the given depth order, each one's tile rectangle is enumerated and the tiles its ellipse
+// misses are dropped (the same float arithmetic as _ellipse_meets_tile); a counting sort by tile keeps
+// depth order within each tile. Two parallel passes (count, fill) and one serial scatter.
+
+template <typename scalar_t>
+struct TileRect {
+  int64_t tx0, tx1, ty0, ty1;
+  bool empty;
+};
+
+template <typename scalar_t>
+TileRect<scalar_t> tile_rect(scalar_t u, scalar_t v, scalar_t ex, scalar_t ey, int64_t width,
+                             int64_t height, int64_t tile_size) {
+  auto clamp = [](scalar_t x, scalar_t hi) { return std::min(std::max(x, scalar_t(0)), hi); };
+  const scalar_t half = scalar_t(0.5);
+  const scalar_t x0 = clamp(std::ceil(u - ex - half), scalar_t(width - 1));
+  const scalar_t x1 = clamp(std::floor(u + ex - half), scalar_t(width - 1));
+  const scalar_t y0 = clamp(std::ceil(v - ey - half), scalar_t(height - 1));
+  const scalar_t y1 = clamp(std::floor(v + ey - half), scalar_t(height - 1));
+  const scalar_t ts = scalar_t(tile_size);
+  return {int64_t(std::floor(x0 / ts)), int64_t(std::floor(x1 / ts)), int64_t(std::floor(y0 / ts)),
+          int64_t(std::floor(y1 / ts)), !(x0 <= x1 && y0 <= y1)};
+}
+
+template <typename scalar_t>
+bool ellipse_meets_tile(scalar_t mx, scalar_t my, scalar_t a, scalar_t b, scalar_t c, scalar_t reach,
+                        int64_t tx, int64_t ty, int64_t tile_size) {
+  // (x - m)^T [[a, b], [b, c]] (x - m) <= reach^2 somewhere on the tile's pixel centres.
+  const scalar_t x0 = scalar_t(tx * tile_size) + scalar_t(0.5) - mx;
+  const scalar_t x1 = x0 + scalar_t(tile_size - 1);
+  const scalar_t y0 = scalar_t(ty * tile_size) + scalar_t(0.5) - my;
+  const scalar_t y1 = y0 + scalar_t(tile_size - 1);
+  if (x0 <= 0 && x1 >= 0 && y0 <= 0 && y1 >= 0) return true;
+  auto quad = [&](scalar_t dx, scalar_t dy) { return a * dx * dx + 2 * b * dx * dy + c * dy * dy; };
+  auto clip = [](scalar_t x, scalar_t lo, scalar_t hi) { return std::min(std::max(x, lo), hi); };
+  scalar_t best = std::numeric_limits<scalar_t>::infinity();
+  for (const scalar_t x : {x0, x1}) best = std::min(best, quad(x, clip(-b * x / c, y0, y1)));
+  for (const scalar_t y : {y0, y1}) best = std::min(best, quad(clip(-b * y / a, x0, x1), y));
+  return best <= reach * reach;
+}
+
+template <typename scalar_t>
+void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& reach,
+              const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& order,
+              int64_t n, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,
+              int64_t tiles_y, std::vector<int64_t>& hit_gaussians, std::vector<int64_t>& hit_tiles) {
+  const scalar_t* m = means2d.data_ptr<scalar_t>();
+  const scalar_t* cn = conics.data_ptr<scalar_t>();
+  const scalar_t* rc = reach.data_ptr<scalar_t>();
+  const scalar_t* ext = extents.data_ptr<scalar_t>();
+  const int32_t* rad = radii.data_ptr<int32_t>();
+  const int64_t* ord = order.data_ptr<int64_t>();
+  const int64_t count = order.size(0);
+
+  // visit(k, emit): every tile of the k-th Gaussian in depth order that its ellipse reaches
+  auto visit = [&](int64_t k, auto&& emit) {
+    const int64_t g = ord[k];
+    if (rad[g] <= 0) return;
+    const TileRect<scalar_t> r =
+        tile_rect<scalar_t>(m[2 * g], m[2 * g + 1], ext[2 * g], ext[2 * g + 1], width, height, tile_size);
+    if (r.empty) return;
+    const int64_t base = (g / n) * tiles_y * tiles_x;
+    for (int64_t ty = r.ty0; ty <= r.ty1; ++ty) {
+      for (int64_t tx = r.tx0; tx <= r.tx1; ++tx) {
+        if (ellipse_meets_tile<scalar_t>(m[2 * g], m[2 * g + 1], cn[3 * g], cn[3 * g + 1],
+                                         cn[3 * g + 2], rc[g % n], tx, ty, tile_size)) {
+          emit(base + ty * tiles_x + tx, g);
+        }
+      }
+    }
+  };
+  std::vector<int64_t> counts(count + 1, 0);
+  at::parallel_for(0, count, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      int64_t c = 0;
+      visit(k, [&](int64_t, int64_t) { ++c; });
+      counts[k + 1] = c;
+    }
+  });
+  for (int64_t k = 0; k < count; ++k) counts[k + 1] += counts[k];
+  hit_gaussians.resize(counts[count]);
+  hit_tiles.resize(counts[count]);
+  at::parallel_for(0, count, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      int64_t at = counts[k];
+      visit(k, [&](int64_t tile, int64_t g) { hit_tiles[at] = tile; hit_gaussians[at] = g; ++at; });
+    }
+  });
+}
+
+std::vector<at::Tensor> bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& reach,
+                            const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& order,
+                            int64_t num_cams, int64_t n, int64_t width, int64_t height,
+                            int64_t tile_size) {
+  // means2d [G,2], conics [G,3], extents [G,2], radii [G] int32 (G = C * N flattened), reach [N],
+  // order [G'] int64: Gaussians in depth order -> gaussian_ids [I], tile_ids [I], tile_offsets [T+1]
+  for (const at::Tensor* t : {&means2d, &conics, &reach, &extents, &radii, &order}) {
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous(), "bin_cpu: inputs must be contiguous CPU tensors");
+  }
+  TORCH_CHECK(radii.scalar_type() == at::kInt && order.scalar_type() == at::kLong,
+              "bin_cpu: radii must be int32 and order int64");
+  const int64_t tiles_x = (width + tile_size - 1) / tile_size;
+  const int64_t tiles_y = (height + tile_size - 1) / tile_size;
+  const int64_t num_tiles = num_cams * tiles_x * tiles_y;
+  std::vector<int64_t> gaussians, tiles;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_cpu", [&] {
+    bin_impl<scalar_t>(means2d, conics, reach, extents, radii, order, n, width, height, tile_size,
+                       tiles_x, tiles_y, gaussians, tiles);
+  });
+  // Counting sort by tile, stable: depth order survives within each tile.
+  const int64_t hits = int64_t(tiles.size());
+  auto long_opts = at::TensorOptions().dtype(at::kLong);
+  auto offsets = at::zeros({num_tiles + 1}, long_opts);
+  auto gaussian_ids = at::empty({hits}, long_opts);
+  auto tile_ids = at::empty({hits}, long_opts);
+  int64_t* off = offsets.data_ptr<int64_t>();
+  for (int64_t i = 0; i < hits; ++i) ++off[tiles[i] + 1];
+  for (int64_t t = 0; t < num_tiles; ++t) off[t + 1] += off[t];
+  std::vector<int64_t> cursor(off, off + num_tiles);
+  int64_t* gid = gaussian_ids.data_ptr<int64_t>();
+  int64_t* tid = tile_ids.data_ptr<int64_t>();
+  for (int64_t i = 0; i < hits; ++i) {
+    const int64_t at = cursor[tiles[i]]++;
+    gid[at] = gaussians[i];
+    tid[at] = tiles[i];
+  }
+  return {gaussian_ids, tile_ids, offsets};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "fused CPU compositor, forward");
   m.def("backward", &backward, "fused CPU compositor, backward");
+  m.def("bin", &bin, "tile binning: intersections sorted by (tile, depth)");
 }
