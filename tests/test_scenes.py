@@ -232,3 +232,21 @@ def test_cli_generates_and_reports(tmp_path, capsys):
 def test_every_scene_is_registered_with_declared_effects():
     assert {"tiny", "city-block", "pagoda"} <= set(SCENES.names())
     assert scene_config("pagoda").effects.declared() == ["exposure", "sky", "sensor_noise"]
+
+
+def test_pixel_colour_integrates_over_the_pixel():
+    """n x n rays per pixel of a W x H view are exactly the pixel centres of the same view at nW x nH:
+    the supersampled image equals the box-filtered large point-sampled one (sky included)."""
+    n = 3
+    scene = scene_config("city-block", **{**SMALL_CITY, "pixel_samples": n}).setup("city-block")
+    big = scene_config("city-block", **{**SMALL_CITY, "width": 48 * n, "height": 32 * n,
+                                        "pixel_samples": 1}).setup("city-block")
+    viewmat, cfg = scene.viewmats[1], scene.config
+    centre = render_view(scene.caster, viewmat, scene.K, 48, 32, scene.sun, cfg.ambient, cfg.shadows)
+    small = gen._pixel_colour(scene, viewmat, centre, sky=True)
+    large = render_view(big.caster, viewmat, big.K, 48 * n, 32 * n, big.sun, cfg.ambient, cfg.shadows)
+    pooled = fx.apply_sky(large.rgb, large.hit, large.dirs_world).reshape(32, n, 48, n, 3).mean((1, 3))
+    np.testing.assert_allclose(small, pooled, atol=1e-6)
+    # and it is not the point-sampled image: edges and textures blend
+    point = fx.apply_sky(centre.rgb, centre.hit, centre.dirs_world)
+    assert np.abs(small - point).max() > 0.1

@@ -58,6 +58,11 @@ class SceneConfig(InstantiateConfig):
     """Image height in pixels."""
     fov_x_deg: float = 60.0
     """Horizontal field of view in degrees."""
+    pixel_samples: int = 2
+    """Rays per pixel side: a pixel's colour is the mean of an n x n grid of rays over its footprint,
+    as a camera integrates light over each pixel (1 = one ray through the centre). Point samples
+    alias window grids, tiles and road markings differently in every view, a pattern no
+    view-consistent model can reproduce. Depth, normals and surface points come from the centre ray."""
     seed: int = 0
     """Seed for layout, camera jitter, effects and sparse points."""
     sun_azimuth_deg: float = 35.0

@@ -30,7 +30,7 @@ from threadpoolctl import threadpool_limits
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes import effects as fx
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
-from hico_plugin.scenes.render import render_view
+from hico_plugin.scenes.render import View, render_view
 from hico_plugin.scenes.sfm import run_sfm
 from hico_plugin.scenes.sparse import SparsePoints, feature_points
 
@@ -68,7 +68,8 @@ def scene_config(name: str, **overrides: Any) -> SceneConfig:
 
 
 def validate_config(name: str, config: SceneConfig) -> None:
-    for field, minimum in (("num_views", 2), ("width", 8), ("height", 8), ("sparse_points", 1)):
+    for field, minimum in (("num_views", 2), ("width", 8), ("height", 8), ("sparse_points", 1),
+                           ("pixel_samples", 1)):
         if getattr(config, field) < minimum:
             raise HicoError(f"scene '{name}': {field} must be >= {minimum}, got {getattr(config, field)}")
     if not 1.0 <= config.fov_x_deg <= 170.0:
@@ -158,9 +159,7 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
     surface_keys, surface_points = [], []
     for i, viewmat in enumerate(scene.viewmats):
         view = render_view(scene.caster, viewmat, scene.K, W, H, scene.sun, config.ambient, config.shadows)
-        rgb = view.rgb
-        if "sky" in enabled:
-            rgb = fx.apply_sky(rgb, view.hit, view.dirs_world)
+        rgb = _pixel_colour(scene, viewmat, view, "sky" in enabled)
         if gains is not None:
             rgb = fx.apply_exposure(rgb, gains[i])
         if noise_rng is not None:
@@ -233,6 +232,27 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
     tmp_json.write_text(json.dumps(meta, indent=2))
     os.replace(tmp_json, out / "scene.json")
     return meta
+
+
+def _pixel_colour(scene: Scene, viewmat: np.ndarray, centre: View, sky: bool) -> np.ndarray:
+    """Colour [H, W, 3] of each pixel: the mean over config.pixel_samples^2 rays spread evenly over
+    the pixel (``centre`` is the view of the pixel-centre rays), sky included; sensor effects (exposure,
+    noise) act on the integrated value and come after."""
+    n = scene.config.pixel_samples
+    views = [centre]
+    if n > 1:
+        offsets = (np.arange(n) + 0.5) / n - 0.5
+        views = []
+        for dy in offsets:
+            for dx in offsets:
+                # the ray through (u + 0.5 + dx, v + 0.5 + dy) is the centre ray of a shifted principal point
+                K = scene.K.copy()
+                K[0, 2] -= dx
+                K[1, 2] -= dy
+                views.append(render_view(scene.caster, viewmat, K, scene.width, scene.height, scene.sun,
+                                         scene.config.ambient, scene.config.shadows))
+    colours = [fx.apply_sky(v.rgb, v.hit, v.dirs_world) if sky else v.rgb for v in views]
+    return np.mean(colours, 0)
 
 
 def _voxel_keys(points: np.ndarray, spacing: float) -> np.ndarray:

@@ -29,7 +29,7 @@ class View:
         return self.albedo * self.shading[..., None]
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=32)  # supersampling shifts the principal point: n^2 + 1 K per view
 def _pixel_dirs(K: tuple[float, ...], width: int, height: int) -> np.ndarray:
     """Unit camera-frame directions through pixel centres, row-major [H*W, 3] (shared by all views
     with the same intrinsics)."""

@@ -24,6 +24,8 @@ class TinyConfig(SceneConfig):
     num_views: int = 12
     width: int = 64
     height: int = 48
+    pixel_samples: int = 1
+    """One ray per pixel: unit tests want speed, and tiny's checkers are many pixels wide."""
     sparse_points: int = 300
     surface_spacing: float = 0.05
     effects: TinyEffects = field(default_factory=TinyEffects)
