@@ -58,12 +58,12 @@ def _paper() -> HiCoTrainerConfig:
 
 
 def _lite() -> HiCoTrainerConfig:
-    """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 2,000-step schedule.
+    """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 3,000-step schedule.
 
-    One change besides the length: anchors are adjusted every 750 reference steps (50 of this run's)
-    instead of every 100 (7 of this run's). Scaled down that far, each decision would average the
-    gradients of ~7 views, and the noisy means grow anchors the CPU cannot afford."""
-    config = _with(_paper(), "hico-gs-lite", max_steps=2_000, eval_every=0, save_every=500)
+    One change besides the length: anchors are adjusted every 750 reference steps (75 of this run's)
+    instead of every 100 (10 of this run's). Scaled down that far, each decision would average the
+    gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford."""
+    config = _with(_paper(), "hico-gs-lite", max_steps=3_000, eval_every=0, save_every=500)
     field = config.model.field
     field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750))
     return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field))

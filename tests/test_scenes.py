@@ -133,9 +133,11 @@ def test_undeclared_and_disabled_effects_never_run(tmp_path, monkeypatch):
 
 def test_declared_effects_are_simulated(tmp_path):
     off = {"exposure": False, "sky": False, "multi_distance": False}
-    plain = generate_scene("city-block", tmp_path / "plain", effects=off, **SMALL_CITY)
-    exposed = generate_scene("city-block", tmp_path / "exposed", effects={**off, "exposure": True}, **SMALL_CITY)
-    sky = generate_scene("city-block", tmp_path / "sky", effects={**off, "sky": True}, **SMALL_CITY)
+    # one ray per pixel, so that a pixel is all sky or all surface (depth == 0 exactly where sky shows)
+    small = {**SMALL_CITY, "pixel_samples": 1}
+    plain = generate_scene("city-block", tmp_path / "plain", effects=off, **small)
+    exposed = generate_scene("city-block", tmp_path / "exposed", effects={**off, "exposure": True}, **small)
+    sky = generate_scene("city-block", tmp_path / "sky", effects={**off, "sky": True}, **small)
     meta = json.loads((exposed / "scene.json").read_text())
     assert meta["enabled_effects"] == ["exposure"]
     assert meta["declared_effects"] == ["exposure", "sky", "multi_distance"]

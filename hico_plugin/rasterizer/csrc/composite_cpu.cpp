@@ -9,7 +9,7 @@
 // A pair is skipped when sigma < 0 or alpha < alpha_min; alpha is clamped at alpha_max; a pixel stops
 // at the first pair whose transmittance after it would be <= t_min (that pair is not drawn).
 // Tiles are handed out dynamically (sky tiles are empty, facade tiles hold thousands of rows) to
-// at::parallel_for's threads; the backward accumulates per thread and sums at the end.
+// at::parallel_for's threads; every output is still independent of the thread count and schedule.
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
@@ -57,7 +57,7 @@ struct Grid {
   }
 };
 
-// Runs fn(tile, thread) over all tiles, handing tiles out one at a time.
+// Runs fn(tile, worker) over all tiles, handing tiles out one at a time.
 template <typename Fn>
 void for_each_tile(int64_t num_tiles, Fn fn) {
   std::atomic<int64_t> next{0};
@@ -131,10 +131,14 @@ void backward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at
                    const at::Tensor& tile_offsets, const Grid grid, double alpha_min,
                    double alpha_max, const at::Tensor& final_t, const at::Tensor& n_drawn,
                    const at::Tensor& grad_out, const at::Tensor& grad_acc, at::Tensor& grads) {
-  // grads [threads, G, 6 + D]: d means2d (2), d conics (3), d opacity (1), d features (D).
+  // grads [G, 6 + D]: d means2d (2), d conics (3), d opacity (1), d features (D). Each tile writes
+  // its rows' gradients (summed over its pixels) into its own slice of a per-intersection buffer;
+  // one serial pass then adds them up by Gaussian in intersection order, so the result does not
+  // depend on which thread took which tile (bitwise reproducible backward, any thread count).
   const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
   const int64_t pixels = grid.tile_size * grid.tile_size, stride = 6 + dim;
-  const int64_t per_thread = grads.size(1) * stride;
+  std::vector<scalar_t> row_grads(gaussian_ids.size(0) * stride, scalar_t(0));
+  std::vector<int32_t> deepest_of(num_tiles, 0);
   const scalar_t* m = means2d.data_ptr<scalar_t>();
   const scalar_t* cn = conics.data_ptr<scalar_t>();
   const scalar_t* o = opacities.data_ptr<scalar_t>();
@@ -148,14 +152,15 @@ void backward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at
   scalar_t* g_all = grads.data_ptr<scalar_t>();
   const scalar_t a_min = alpha_min, a_max = alpha_max;
 
-  for_each_tile(num_tiles, [&](int64_t t, int64_t worker) {
+  for_each_tile(num_tiles, [&](int64_t t, int64_t) {
     const int64_t begin = offsets[t], count = offsets[t + 1] - begin;
     int32_t deepest = 0;
     for (int64_t p = 0; p < pixels; ++p) deepest = std::max(deepest, n_p[t * pixels + p]);
+    deepest_of[t] = deepest;
     if (deepest == 0) return;
     TileRows<scalar_t> rows;
     rows.gather(m, cn, o, f, ids, begin, deepest, dim, a_min);
-    std::vector<scalar_t> g_rows(deepest * stride, scalar_t(0));  // per-row, summed over pixels
+    scalar_t* g_rows = &row_grads[begin * stride];  // this tile's rows, summed over its pixels
     std::vector<scalar_t> behind(dim + 1);  // colour (and alpha) composited behind the current row
     for (int64_t p = 0; p < pixels; ++p) {
       const int64_t pix = t * pixels + p;
@@ -199,13 +204,14 @@ void backward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at
         g[4] += g_sigma * scalar_t(0.5) * dy * dy;
       }
     }
-    scalar_t* g_thread = g_all + worker * per_thread;
-    for (int64_t r = 0; r < deepest; ++r) {
-      scalar_t* dst = g_thread + ids[begin + r] * stride;
-      const scalar_t* src = &g_rows[r * stride];
+  });
+  for (int64_t t = 0; t < num_tiles; ++t) {
+    for (int64_t i = offsets[t]; i < offsets[t] + deepest_of[t]; ++i) {
+      scalar_t* dst = g_all + ids[i] * stride;
+      const scalar_t* src = &row_grads[i * stride];
       for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
     }
-  });
+  }
 }
 
 void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
@@ -246,16 +252,13 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
                                  const at::Tensor& grad_acc) {
   check_inputs(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
   TORCH_CHECK(grad_out.is_contiguous() && grad_acc.is_contiguous(), "composite_cpu: grads must be contiguous");
-  const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
-  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), num_tiles));
-  auto grads = at::zeros({threads, features.size(0), 6 + dim}, features.options());
+  auto grads = at::zeros({features.size(0), 6 + features.size(1)}, features.options());
   const Grid grid{tiles_x, tiles_per_cam, tile_size};
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_backward", [&] {
     backward_impl<scalar_t>(means2d, conics, opacities, features, gaussian_ids, tile_offsets, grid,
                             alpha_min, alpha_max, final_t, n_drawn, grad_out, grad_acc, grads);
   });
-  auto total = grads.sum(0);
-  return {total.slice(1, 0, 2), total.slice(1, 2, 5), total.select(1, 5), total.slice(1, 6)};
+  return {grads.slice(1, 0, 2), grads.slice(1, 2, 5), grads.select(1, 5), grads.slice(1, 6)};
 }
 
 // ----- binning --------------------------------------------------------------------------------------
