@@ -23,26 +23,47 @@
 namespace {
 
 template <typename scalar_t>
+struct Splats {
+  // Raw views of the compositor's inputs (see the contract at the top).
+  const scalar_t *means2d, *conics, *opacities, *features;
+  const int64_t *ids, *offsets;
+  int64_t num_tiles, dim;
+
+  Splats(const at::Tensor& means2d_, const at::Tensor& conics_, const at::Tensor& opacities_,
+         const at::Tensor& features_, const at::Tensor& gaussian_ids, const at::Tensor& tile_offsets)
+      : means2d(means2d_.data_ptr<scalar_t>()), conics(conics_.data_ptr<scalar_t>()),
+        opacities(opacities_.data_ptr<scalar_t>()), features(features_.data_ptr<scalar_t>()),
+        ids(gaussian_ids.data_ptr<int64_t>()), offsets(tile_offsets.data_ptr<int64_t>()),
+        num_tiles(tile_offsets.size(0) - 1), dim(features_.size(1)) {}
+};
+
+template <typename scalar_t>
 struct TileRows {
-  // The rows of one tile gathered into contiguous arrays: x, y, a, b, c, opacity, features, and
+  // The first rows of one tile gathered into contiguous arrays: x, y, a, b, c, opacity, features, and
   // cut = log(opacity / alpha_min): a pair with sigma > cut has alpha < alpha_min, so most pairs of
   // a tile (pixels outside the row's ellipse) are rejected without an exp.
   std::vector<scalar_t> mx, my, ca, cb, cc, op, cut, feat;
 
-  void gather(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opacities,
-              const scalar_t* features, const int64_t* ids, int64_t begin, int64_t count,
-              int64_t dim, scalar_t alpha_min) {
-    mx.resize(count); my.resize(count); ca.resize(count); cb.resize(count); cc.resize(count);
-    op.resize(count); cut.resize(count); feat.resize(count * dim);
+  TileRows(const Splats<scalar_t>& s, int64_t tile, int64_t count, scalar_t alpha_min)
+      : mx(count), my(count), ca(count), cb(count), cc(count), op(count), cut(count),
+        feat(count * s.dim) {
     for (int64_t r = 0; r < count; ++r) {
-      const int64_t g = ids[begin + r];
-      mx[r] = means2d[2 * g]; my[r] = means2d[2 * g + 1];
-      ca[r] = conics[3 * g]; cb[r] = conics[3 * g + 1]; cc[r] = conics[3 * g + 2];
-      op[r] = opacities[g];
+      const int64_t g = s.ids[s.offsets[tile] + r];
+      mx[r] = s.means2d[2 * g]; my[r] = s.means2d[2 * g + 1];
+      ca[r] = s.conics[3 * g]; cb[r] = s.conics[3 * g + 1]; cc[r] = s.conics[3 * g + 2];
+      op[r] = s.opacities[g];
       // a hair above the exact cut, so rounding never rejects a pair the alpha test would keep
       cut[r] = op[r] > 0 ? std::log(op[r] / alpha_min) + scalar_t(1e-3) : scalar_t(-1);
-      for (int64_t d = 0; d < dim; ++d) feat[r * dim + d] = features[g * dim + d];
+      for (int64_t d = 0; d < s.dim; ++d) feat[r * s.dim + d] = s.features[g * s.dim + d];
     }
+  }
+
+  // Whether row r reaches pixel (px, py) above the alpha cut-off; sets its offsets and sigma.
+  bool reaches(int64_t r, scalar_t px, scalar_t py, scalar_t& dx, scalar_t& dy, scalar_t& sigma) const {
+    dx = px - mx[r];
+    dy = py - my[r];
+    sigma = scalar_t(0.5) * (ca[r] * dx * dx + cc[r] * dy * dy) + cb[r] * dx * dy;
+    return sigma >= 0 && sigma <= cut[r];  // (NaN fails both)
   }
 };
 
@@ -70,45 +91,31 @@ void for_each_tile(int64_t num_tiles, Fn fn) {
 }
 
 template <typename scalar_t>
-void forward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
-                  const at::Tensor& features, const at::Tensor& gaussian_ids,
-                  const at::Tensor& tile_offsets, const Grid grid, double alpha_min,
-                  double alpha_max, double t_min, at::Tensor& out, at::Tensor& acc,
-                  at::Tensor& final_t, at::Tensor& n_drawn) {
-  const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
-  const int64_t pixels = grid.tile_size * grid.tile_size;
-  const scalar_t* m = means2d.data_ptr<scalar_t>();
-  const scalar_t* cn = conics.data_ptr<scalar_t>();
-  const scalar_t* o = opacities.data_ptr<scalar_t>();
-  const scalar_t* f = features.data_ptr<scalar_t>();
-  const int64_t* ids = gaussian_ids.data_ptr<int64_t>();
-  const int64_t* offsets = tile_offsets.data_ptr<int64_t>();
+void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, scalar_t a_max,
+                  scalar_t t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t,
+                  at::Tensor& n_drawn) {
+  const int64_t pixels = grid.tile_size * grid.tile_size, dim = s.dim;
   scalar_t* out_p = out.data_ptr<scalar_t>();
   scalar_t* acc_p = acc.data_ptr<scalar_t>();
   scalar_t* t_p = final_t.data_ptr<scalar_t>();
   int32_t* n_p = n_drawn.data_ptr<int32_t>();
-  const scalar_t a_min = alpha_min, a_max = alpha_max, tmin = t_min;
 
-  for_each_tile(num_tiles, [&](int64_t t, int64_t) {
-    const int64_t begin = offsets[t], count = offsets[t + 1] - begin;
-    TileRows<scalar_t> rows;
-    rows.gather(m, cn, o, f, ids, begin, count, dim, a_min);
+  for_each_tile(s.num_tiles, [&](int64_t t, int64_t) {
+    const int64_t count = s.offsets[t + 1] - s.offsets[t];
+    const TileRows<scalar_t> rows(s, t, count, a_min);
     std::vector<scalar_t> color(dim);
     for (int64_t p = 0; p < pixels; ++p) {
-      scalar_t px, py;
+      scalar_t px, py, dx, dy, sigma;
       grid.pixel(t, p, px, py);
       std::fill(color.begin(), color.end(), scalar_t(0));
       scalar_t trans = 1, weight_sum = 0;
       int32_t drawn = 0;
       for (int64_t r = 0; r < count; ++r) {
-        const scalar_t dx = px - rows.mx[r], dy = py - rows.my[r];
-        const scalar_t sigma =
-            scalar_t(0.5) * (rows.ca[r] * dx * dx + rows.cc[r] * dy * dy) + rows.cb[r] * dx * dy;
-        if (!(sigma >= 0) || sigma > rows.cut[r]) continue;  // (NaN fails the first test)
+        if (!rows.reaches(r, px, py, dx, dy, sigma)) continue;
         const scalar_t alpha = std::min(a_max, rows.op[r] * std::exp(-sigma));
         if (!(alpha >= a_min)) continue;
         const scalar_t next = trans * (1 - alpha);
-        if (next <= tmin) break;
+        if (next <= t_min) break;
         const scalar_t w = alpha * trans;
         const scalar_t* fr = &rows.feat[r * dim];
         for (int64_t d = 0; d < dim; ++d) color[d] += w * fr[d];
@@ -126,57 +133,42 @@ void forward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at:
 }
 
 template <typename scalar_t>
-void backward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
-                   const at::Tensor& features, const at::Tensor& gaussian_ids,
-                   const at::Tensor& tile_offsets, const Grid grid, double alpha_min,
-                   double alpha_max, const at::Tensor& final_t, const at::Tensor& n_drawn,
-                   const at::Tensor& grad_out, const at::Tensor& grad_acc, at::Tensor& grads) {
+void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, scalar_t a_max,
+                   const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
+                   const at::Tensor& grad_acc, at::Tensor& grads) {
   // grads [G, 6 + D]: d means2d (2), d conics (3), d opacity (1), d features (D). Each tile writes
   // its rows' gradients (summed over its pixels) into its own slice of a per-intersection buffer;
   // one serial pass then adds them up by Gaussian in intersection order, so the result does not
   // depend on which thread took which tile (bitwise reproducible backward, any thread count).
-  const int64_t num_tiles = tile_offsets.size(0) - 1, dim = features.size(1);
-  const int64_t pixels = grid.tile_size * grid.tile_size, stride = 6 + dim;
-  std::vector<scalar_t> row_grads(gaussian_ids.size(0) * stride, scalar_t(0));
-  std::vector<int32_t> deepest_of(num_tiles, 0);
-  const scalar_t* m = means2d.data_ptr<scalar_t>();
-  const scalar_t* cn = conics.data_ptr<scalar_t>();
-  const scalar_t* o = opacities.data_ptr<scalar_t>();
-  const scalar_t* f = features.data_ptr<scalar_t>();
-  const int64_t* ids = gaussian_ids.data_ptr<int64_t>();
-  const int64_t* offsets = tile_offsets.data_ptr<int64_t>();
+  const int64_t pixels = grid.tile_size * grid.tile_size, dim = s.dim, stride = 6 + dim;
+  std::vector<scalar_t> row_grads(s.offsets[s.num_tiles] * stride, scalar_t(0));
+  std::vector<int32_t> deepest_of(s.num_tiles, 0);
   const scalar_t* t_p = final_t.data_ptr<scalar_t>();
   const int32_t* n_p = n_drawn.data_ptr<int32_t>();
   const scalar_t* go = grad_out.data_ptr<scalar_t>();
   const scalar_t* ga = grad_acc.data_ptr<scalar_t>();
   scalar_t* g_all = grads.data_ptr<scalar_t>();
-  const scalar_t a_min = alpha_min, a_max = alpha_max;
 
-  for_each_tile(num_tiles, [&](int64_t t, int64_t) {
-    const int64_t begin = offsets[t], count = offsets[t + 1] - begin;
+  for_each_tile(s.num_tiles, [&](int64_t t, int64_t) {
     int32_t deepest = 0;
     for (int64_t p = 0; p < pixels; ++p) deepest = std::max(deepest, n_p[t * pixels + p]);
     deepest_of[t] = deepest;
     if (deepest == 0) return;
-    TileRows<scalar_t> rows;
-    rows.gather(m, cn, o, f, ids, begin, deepest, dim, a_min);
-    scalar_t* g_rows = &row_grads[begin * stride];  // this tile's rows, summed over its pixels
+    const TileRows<scalar_t> rows(s, t, deepest, a_min);
+    scalar_t* g_rows = &row_grads[s.offsets[t] * stride];  // this tile's rows, summed over its pixels
     std::vector<scalar_t> behind(dim + 1);  // colour (and alpha) composited behind the current row
     for (int64_t p = 0; p < pixels; ++p) {
       const int64_t pix = t * pixels + p;
       const int32_t drawn = n_p[pix];
       if (drawn == 0) continue;
-      scalar_t px, py;
+      scalar_t px, py, dx, dy, sigma;
       grid.pixel(t, p, px, py);
       const scalar_t* g_color = &go[pix * dim];
       const scalar_t g_alpha = ga[pix];
       std::fill(behind.begin(), behind.end(), scalar_t(0));
       scalar_t trans = t_p[pix];
       for (int64_t r = drawn - 1; r >= 0; --r) {
-        const scalar_t dx = px - rows.mx[r], dy = py - rows.my[r];
-        const scalar_t sigma =
-            scalar_t(0.5) * (rows.ca[r] * dx * dx + rows.cc[r] * dy * dy) + rows.cb[r] * dx * dy;
-        if (!(sigma >= 0) || sigma > rows.cut[r]) continue;
+        if (!rows.reaches(r, px, py, dx, dy, sigma)) continue;
         const scalar_t falloff = std::exp(-sigma);
         const scalar_t raw = rows.op[r] * falloff;
         const scalar_t alpha = std::min(a_max, raw);
@@ -205,9 +197,9 @@ void backward_impl(const at::Tensor& means2d, const at::Tensor& conics, const at
       }
     }
   });
-  for (int64_t t = 0; t < num_tiles; ++t) {
-    for (int64_t i = offsets[t]; i < offsets[t] + deepest_of[t]; ++i) {
-      scalar_t* dst = g_all + ids[i] * stride;
+  for (int64_t t = 0; t < s.num_tiles; ++t) {
+    for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
+      scalar_t* dst = g_all + s.ids[i] * stride;
       const scalar_t* src = &row_grads[i * stride];
       for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
     }
@@ -237,8 +229,8 @@ std::vector<at::Tensor> forward(const at::Tensor& means2d, const at::Tensor& con
   auto n_drawn = at::empty({num_tiles, pixels}, features.options().dtype(at::kInt));
   const Grid grid{tiles_x, tiles_per_cam, tile_size};
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_forward", [&] {
-    forward_impl<scalar_t>(means2d, conics, opacities, features, gaussian_ids, tile_offsets, grid,
-                           alpha_min, alpha_max, t_min, out, acc, final_t, n_drawn);
+    const Splats<scalar_t> splats(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
+    forward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, t_min, out, acc, final_t, n_drawn);
   });
   return {out, acc, final_t, n_drawn};
 }
@@ -255,8 +247,9 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
   auto grads = at::zeros({features.size(0), 6 + features.size(1)}, features.options());
   const Grid grid{tiles_x, tiles_per_cam, tile_size};
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_backward", [&] {
-    backward_impl<scalar_t>(means2d, conics, opacities, features, gaussian_ids, tile_offsets, grid,
-                            alpha_min, alpha_max, final_t, n_drawn, grad_out, grad_acc, grads);
+    const Splats<scalar_t> splats(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
+    backward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, final_t, n_drawn, grad_out,
+                            grad_acc, grads);
   });
   return {grads.slice(1, 0, 2), grads.slice(1, 2, 5), grads.select(1, 5), grads.slice(1, 6)};
 }
