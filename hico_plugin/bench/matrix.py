@@ -55,9 +55,9 @@ class BenchConfig(InstantiateConfig):
     """A COLMAP dataset directory to benchmark instead of the built-in scenes."""
     budgets: tuple[int, ...] = (100, 200, 400)
     """Training budgets in optimizer steps (checkpoints of one run when schedule is nested). The
-    default takes about 20-30 minutes for the 12 default runs on 2 cores (~0.15-0.3 s per step at
-    downscale 2, plus evaluations); a report's ms / step column tells the step time on your machine,
-    scale the budgets by it."""
+    default takes about 10 minutes for the 12 default runs on 2 cores (~0.08-0.12 s per step at
+    downscale 2 with the fused CPU kernels, plus evaluations); a report's ms / step column tells the
+    step time on your machine, scale the budgets by it."""
     schedule: Literal["nested", "separate"] = "nested"
     """nested: one run per (preset, scene) to the largest budget, evaluated at each budget (its
     schedules scaled to the largest budget); separate: one run per budget with its own schedule."""
