@@ -44,7 +44,8 @@ class _Extension:
                                    extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"],
                                    verbose=False)
             except Exception as err:  # noqa: BLE001 - no compiler / headers: use the torch compositor
-                self.error = f"{type(err).__name__}: {str(err).strip().splitlines()[-1] if str(err).strip() else ''}"
+                last_line = (str(err).strip().splitlines() or [""])[-1]  # a build log ends with the cause
+                self.error = f"{type(err).__name__}: {last_line}"
                 warnings.warn("the fused CPU compositor could not be built, using the torch one "
                               f"(slower): {self.error}")
         return self.module

@@ -10,8 +10,8 @@ from torch import Tensor
 
 from hico_plugin.cameras import Camera
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.rasterizer.api import rasterize, use_fused
 from hico_plugin.errors import HicoError
+from hico_plugin.rasterizer.api import rasterize, use_fused
 from hico_plugin.rasterizer.base import COMPOSITORS, RASTERIZER_BACKENDS, RenderOutputs
 
 

@@ -236,23 +236,25 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
 
 def _pixel_colour(scene: Scene, viewmat: np.ndarray, centre: View, sky: bool) -> np.ndarray:
     """Colour [H, W, 3] of each pixel: the mean over config.pixel_samples^2 rays spread evenly over
-    the pixel (``centre`` is the view of the pixel-centre rays), sky included; sensor effects (exposure,
-    noise) act on the integrated value and come after."""
+    the pixel (``centre`` is the view of the pixel-centre rays, the only one when pixel_samples is 1),
+    sky included; sensor effects (exposure, noise) act on the integrated value and come after."""
+    def colour(view: View) -> np.ndarray:
+        return fx.apply_sky(view.rgb, view.hit, view.dirs_world) if sky else view.rgb
+
     n = scene.config.pixel_samples
-    views = [centre]
-    if n > 1:
-        offsets = (np.arange(n) + 0.5) / n - 0.5
-        views = []
-        for dy in offsets:
-            for dx in offsets:
-                # the ray through (u + 0.5 + dx, v + 0.5 + dy) is the centre ray of a shifted principal point
-                K = scene.K.copy()
-                K[0, 2] -= dx
-                K[1, 2] -= dy
-                views.append(render_view(scene.caster, viewmat, K, scene.width, scene.height, scene.sun,
-                                         scene.config.ambient, scene.config.shadows))
-    colours = [fx.apply_sky(v.rgb, v.hit, v.dirs_world) if sky else v.rgb for v in views]
-    return np.mean(colours, 0)
+    if n == 1:
+        return colour(centre)
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    total = np.zeros((scene.height, scene.width, 3))
+    for dy in offsets:
+        for dx in offsets:
+            # the ray through (u + 0.5 + dx, v + 0.5 + dy) is the centre ray of a shifted principal point
+            K = scene.K.copy()
+            K[0, 2] -= dx
+            K[1, 2] -= dy
+            total += colour(render_view(scene.caster, viewmat, K, scene.width, scene.height, scene.sun,
+                                        scene.config.ambient, scene.config.shadows))
+    return total / (n * n)
 
 
 def _voxel_keys(points: np.ndarray, spacing: float) -> np.ndarray:

@@ -78,15 +78,13 @@ struct Grid {
   }
 };
 
-// Runs fn(tile, worker) over all tiles, handing tiles out one at a time.
+// Runs fn(tile) over all tiles, one parallel_for worker per thread taking the next tile as it frees up.
 template <typename Fn>
 void for_each_tile(int64_t num_tiles, Fn fn) {
   std::atomic<int64_t> next{0};
   const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), num_tiles));
-  at::parallel_for(0, threads, 1, [&](int64_t begin, int64_t end) {
-    for (int64_t worker = begin; worker < end; ++worker) {
-      for (int64_t t = next++; t < num_tiles; t = next++) fn(t, worker);
-    }
+  at::parallel_for(0, threads, 1, [&](int64_t, int64_t) {
+    for (int64_t t = next++; t < num_tiles; t = next++) fn(t);
   });
 }
 
@@ -100,7 +98,7 @@ void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, sc
   scalar_t* t_p = final_t.data_ptr<scalar_t>();
   int32_t* n_p = n_drawn.data_ptr<int32_t>();
 
-  for_each_tile(s.num_tiles, [&](int64_t t, int64_t) {
+  for_each_tile(s.num_tiles, [&](int64_t t) {
     const int64_t count = s.offsets[t + 1] - s.offsets[t];
     const TileRows<scalar_t> rows(s, t, count, a_min);
     std::vector<scalar_t> color(dim);
@@ -149,7 +147,7 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
   const scalar_t* ga = grad_acc.data_ptr<scalar_t>();
   scalar_t* g_all = grads.data_ptr<scalar_t>();
 
-  for_each_tile(s.num_tiles, [&](int64_t t, int64_t) {
+  for_each_tile(s.num_tiles, [&](int64_t t) {
     int32_t deepest = 0;
     for (int64_t p = 0; p < pixels; ++p) deepest = std::max(deepest, n_p[t * pixels + p]);
     deepest_of[t] = deepest;
@@ -260,14 +258,13 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
 // misses are dropped (the same float arithmetic as _ellipse_meets_tile); a counting sort by tile keeps
 // depth order within each tile. Two parallel passes (count, fill) and one serial scatter.
 
-template <typename scalar_t>
 struct TileRect {
   int64_t tx0, tx1, ty0, ty1;
   bool empty;
 };
 
 template <typename scalar_t>
-TileRect<scalar_t> tile_rect(scalar_t u, scalar_t v, scalar_t ex, scalar_t ey, int64_t width,
+TileRect tile_rect(scalar_t u, scalar_t v, scalar_t ex, scalar_t ey, int64_t width,
                              int64_t height, int64_t tile_size) {
   auto clamp = [](scalar_t x, scalar_t hi) { return std::min(std::max(x, scalar_t(0)), hi); };
   const scalar_t half = scalar_t(0.5);
@@ -314,7 +311,7 @@ void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
   auto visit = [&](int64_t k, auto&& emit) {
     const int64_t g = ord[k];
     if (rad[g] <= 0) return;
-    const TileRect<scalar_t> r =
+    const TileRect r =
         tile_rect<scalar_t>(m[2 * g], m[2 * g + 1], ext[2 * g], ext[2 * g + 1], width, height, tile_size);
     if (r.empty) return;
     const int64_t base = (g / n) * tiles_y * tiles_x;
