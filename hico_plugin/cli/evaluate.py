@@ -21,6 +21,7 @@ import tyro
 from hico_plugin.cli import run_cli
 from hico_plugin.cli.render import FrameRequest
 from hico_plugin.engine import evaluate, write_eval_json
+from hico_plugin.engine.checkpoints import load_checkpoint
 from hico_plugin.engine.data import load_view
 from hico_plugin.errors import HicoError
 from hico_plugin.export import LoadedRun, load_trained_run
@@ -52,7 +53,7 @@ class EvalArgs:
 
 def checkpoint_info(path: Path) -> dict[str, Any]:
     """``step`` and ``train_seconds`` recorded in a checkpoint (memory-mapped: tensors stay on disk)."""
-    payload = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+    payload = load_checkpoint(Path(path), mmap=True)
     return {key: payload[key] for key in ("step", "train_seconds") if key in payload}
 
 
