@@ -138,3 +138,36 @@ def test_fused_binning_of_nothing():
                                proj.radii, 64, 48, 16)
     assert bins.gaussian_ids.numel() == 0 and bins.tile_offsets.shape == (2 * 4 * 3 + 1,)
     assert (bins.tile_offsets == 0).all()
+
+
+def test_build_dir_is_private_to_version_torch_and_source():
+    name = fused_module.build_dir().name
+    assert name.startswith("hico-0.") and torch.__version__.replace("+", "-") in name
+    assert name.endswith(__import__("hashlib").sha256(fused_module.SOURCE.read_bytes()).hexdigest()[:12])
+
+
+def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
+    """A builder killed mid-build leaves torch's lock file behind; the next render removes it (with a
+    warning) instead of waiting forever. The built folder is copied so ninja has nothing to redo."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    assert fused_available(), fused_module.EXTENSION.error
+    kernel_dir = tmp_path / "kernels"
+    shutil.copytree(fused_module.build_dir(), kernel_dir, ignore=shutil.ignore_patterns("lock", "hico-build.lock"))
+    (kernel_dir / "lock").write_text("")  # the leftover of a killed build
+    script = (
+        "import torch\n"
+        "from hico_plugin.rasterizer import rasterize\n"
+        "out = rasterize(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1),"
+        " torch.ones(1), torch.ones(1, 3), torch.eye(4), torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]]),"
+        " 64, 48, compositor='fused', use_compile=False)\n"
+        "print('rendered', float(out.rgb.max()))\n"
+    )
+    env = {**os.environ, "HICO_KERNEL_DIR": str(kernel_dir)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stderr
+    assert "rendered" in done.stdout and "removing the stale kernel build lock" in done.stderr
+    assert not (kernel_dir / "lock").exists()

@@ -14,6 +14,8 @@ from typing import Sequence
 import tyro
 
 from hico_plugin.cli import run_cli
+from hico_plugin.engine.run_dir import run_directory
+from hico_plugin.engine.stopping import EXIT_INTERRUPTED
 from hico_plugin.presets import PRESETS, HiCoTrainerConfig
 
 # Options whose value may coincide with a preset name; such a value is not the preset.
@@ -36,8 +38,9 @@ def parse(args: Sequence[str]) -> HiCoTrainerConfig:
         description="Train HiCo-GS (or one of its ablations) on a COLMAP dataset or a built-in scene.")
     if config.experiment_name == "unnamed":
         config.experiment_name = config.data.data.name if config.data.data is not None else config.data.scene
-    if config.output_dir == Path("outputs/unnamed"):
-        config.output_dir = Path("outputs") / config.experiment_name / config.method_name
+    if config.output_dir == Path("outputs/unnamed"):  # nerfstudio's layout: one folder per run
+        base = Path("outputs") / config.experiment_name / config.method_name
+        config.output_dir = run_directory(base, config.timestamp, config.resume)
     return config
 
 
@@ -57,6 +60,12 @@ def train(config: HiCoTrainerConfig) -> None:
         summary = ", ".join(f"{k} {v:.4g}" for k, v in result.eval_results.items() if isinstance(v, float))
         print(f"eval: {summary}")
         print(f"run: {config.output_dir}")
+    if result.interrupted:
+        if trainer.is_main:
+            print(f"stopped at step {result.step}, saved {result.checkpoint}; continue with: hico-train "
+                  f"{config.method_name} --resume --output-dir {config.output_dir} (exit {EXIT_INTERRUPTED})",
+                  file=sys.stderr)
+        raise SystemExit(EXIT_INTERRUPTED)
 
 
 def entrypoint(argv: Sequence[str] | None = None) -> None:

@@ -1,5 +1,12 @@
 """The fused CPU kernels: csrc/composite_cpu.cpp, built on first use with torch's C++ extension
-loader (needs a C++ compiler, as torch.compile on CPU does; cached under TORCH_EXTENSIONS_DIR).
+loader (needs a C++ compiler, as torch.compile on CPU does).
+
+The build folder is private to this package version, torch version and source hash
+(``$HICO_KERNEL_DIR`` or ``~/.cache/hico_plugin/kernels/<key>``), so checkouts and versions never
+share torch's build lock. Builders take an ``flock`` first (the kernel drops it when a builder dies);
+whoever holds it knows a leftover torch lock file is stale and removes it with a warning. A build
+that cannot start within ``BUILD_WAIT_SECONDS`` or fails falls back to the torch compositor with one
+line, so no command waits silently.
 
 ``composite_fused`` has the contract of ``composite.composite`` (the vectorised torch version, which
 stays the reference and the fallback): one pass per pixel with early termination instead of every
@@ -10,7 +17,11 @@ intermediate tensors of every candidate (Gaussian, tile) pair.
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import os
+import sys
+import time
 import warnings
 from pathlib import Path
 from types import ModuleType
@@ -23,6 +34,9 @@ from hico_plugin.rasterizer.projection import ALPHA_MIN
 from hico_plugin.rasterizer.tiling import TileBins
 
 SOURCE = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
+MODULE_NAME = "hico_composite_cpu"
+BUILD_WAIT_SECONDS = 300.0
+"""How long to wait for another process's build before using the torch compositor."""
 T_MIN = float(torch.tensor(LOG_T_MIN, dtype=torch.float64).exp())  # the torch version's cut, 1e-4
 
 
@@ -39,16 +53,55 @@ class _Extension:
                 self.error = "disabled by HICO_NO_FUSED=1"
                 return None
             try:
-                from torch.utils.cpp_extension import load
-                self.module = load(name="hico_composite_cpu", sources=[str(SOURCE)],
-                                   extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"],
-                                   verbose=False)
+                self.module = _build(build_dir())
             except Exception as err:  # noqa: BLE001 - no compiler / headers: use the torch compositor
                 last_line = (str(err).strip().splitlines() or [""])[-1]  # a build log ends with the cause
                 self.error = f"{type(err).__name__}: {last_line}"
                 warnings.warn("the fused CPU compositor could not be built, using the torch one "
                               f"(slower): {self.error}")
         return self.module
+
+
+def build_dir() -> Path:
+    """The private build folder of this package version + torch version + kernel source."""
+    from hico_plugin import __version__
+
+    if os.environ.get("HICO_KERNEL_DIR"):
+        return Path(os.environ["HICO_KERNEL_DIR"])
+    source_hash = hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:12]
+    key = f"hico-{__version__}_torch-{torch.__version__}_{source_hash}".replace("+", "-")
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    return cache / "hico_plugin" / "kernels" / key
+
+
+def _build(folder: Path) -> ModuleType:
+    """Build (or load the built) kernel in ``folder``; TimeoutError when another live builder holds
+    it longer than ``BUILD_WAIT_SECONDS``."""
+    from torch.utils.cpp_extension import load
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with (folder / "hico-build.lock").open("a+") as guard:
+        deadline, told = time.monotonic() + BUILD_WAIT_SECONDS, False
+        while True:
+            try:
+                fcntl.flock(guard.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"another process has been building the kernel in {folder} for over "
+                                       f"{BUILD_WAIT_SECONDS:.0f} s") from None
+                if not told:
+                    print(f"waiting for another process building the CPU kernel in {folder}", file=sys.stderr)
+                    told = True
+                time.sleep(0.5)
+        torch_lock = folder / "lock"  # torch's FileBaton: no live builder holds it while we hold the flock
+        if torch_lock.exists():
+            warnings.warn(f"removing the stale kernel build lock {torch_lock} (its builder is gone)")
+            torch_lock.unlink(missing_ok=True)
+        if not any(folder.glob(f"{MODULE_NAME}*.so")):
+            print("building the CPU kernel (first use, about 40 s)...", file=sys.stderr, flush=True)
+        return load(name=MODULE_NAME, sources=[str(SOURCE)], extra_cflags=["-O3", "-fopenmp"],
+                    extra_ldflags=["-fopenmp"], build_directory=str(folder), verbose=False)
 
 
 EXTENSION = _Extension()
