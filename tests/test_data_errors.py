@@ -181,3 +181,65 @@ def test_train_prints_one_error_line_and_exits_2(tmp_path, monkeypatch, capsys, 
     err = capsys.readouterr().err
     assert exit_.value.code == 2
     assert err.startswith("error: ") and err.count("\n") == 1 and expected in err, err
+
+
+@pytest.mark.parametrize("params, match", [
+    ([0.0, 0.0, 20.0, 15.0], r"camera 1: focal length fx=0, fy=0; expected positive"),
+    ([-50.0, -50.0, 20.0, 15.0], r"camera 1: focal length fx=-50, fy=-50; expected positive"),
+    ([32.0, 32.0, 500.0, 15.0], r"camera 1: principal point \(500, 15\) lies far outside the 40x30 image"),
+])
+def test_bad_intrinsics_fail_at_load(tmp_path, params, match):
+    write_dataset(tmp_path, params=params)
+    message = expect_error(match, tmp_path)
+    assert "sparse/0/cameras" in message
+
+
+def test_tiny_images_fail_at_load(tmp_path):
+    write_dataset(tmp_path, size=(1, 1))
+    expect_error(r"camera 1: image size 1x1; expected at least 16x16 px", tmp_path)
+
+
+def test_test_image_with_wrong_size_fails_at_load(tmp_path):
+    """A test view (index 0 with --test-every 8) is checked at load too, not at the final eval."""
+    written = write_dataset(tmp_path)
+    cv2.imwrite(str(tmp_path / "images" / written["names"][0]), np.zeros((HEIGHT + 1, WIDTH, 3), np.uint8))
+    expect_error(r"view_000\.png: size 40x31 disagrees with its camera", tmp_path)
+
+
+def _rename_image(new_name):
+    def edit(reconstruction):
+        reconstruction.images[1].name = new_name
+    return edit
+
+
+@pytest.mark.parametrize("name, match", [
+    ("/etc/hostname", r"'/etc/hostname' is absolute"),
+    ("../outside.png", r"'\.\./outside\.png' climbs out of"),
+    ("sub/../../outside.png", r"climbs out of"),
+])
+def test_image_names_outside_the_image_folder_are_refused(tmp_path, name, match):
+    write_dataset(tmp_path, edit=_rename_image(name))
+    message = expect_error(match, tmp_path)
+    assert "sparse/0/images: image" in message
+
+
+def test_symlink_leaving_the_image_folder_is_refused(tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    cv2.imwrite(str(outside / "secret.png"), np.zeros((HEIGHT, WIDTH, 3), np.uint8))
+    root = tmp_path / "data"
+    written = write_dataset(root)
+    link = root / "images" / written["names"][1]
+    link.unlink()
+    link.symlink_to(outside / "secret.png")
+    expect_error(r"view_001\.png' resolves to .*outside .*images \(a symlink leaves the folder\)", root)
+
+
+def test_inspect_verifies_images_by_default(tmp_path, monkeypatch, capsys):
+    written = write_dataset(tmp_path)
+    _, encoded = cv2.imencode(".png", np.full((HEIGHT, WIDTH, 3), 90, np.uint8))
+    (tmp_path / "images" / written["names"][3]).write_bytes(encoded.tobytes()[:-12])
+    code, out, err = run_inspect(monkeypatch, capsys, tmp_path)
+    assert code == 2 and err.count("\n") == 1 and "view_003.png: unreadable or truncated" in err
+    code, out, err = run_inspect(monkeypatch, capsys, tmp_path, "--no-verify-images")
+    assert code == 0 and "verified" not in out
