@@ -43,7 +43,20 @@ def test_truncated_model_file(tmp_path):
     write_dataset(tmp_path)
     images_bin = tmp_path / "sparse" / "0" / "images.bin"
     images_bin.write_bytes(images_bin.read_bytes()[:30])
-    expect_error(r"sparse/0: cannot read the COLMAP model", tmp_path)
+    expect_error(r"sparse/0/images\.bin: images: 6 entries do not fit in the remaining 22 bytes", tmp_path)
+
+
+def test_huge_count_in_a_model_file_fails_fast(tmp_path):
+    """A flipped byte in an image's 2D-point count made pycolmap run for minutes (found by fuzzing)."""
+    import struct
+
+    write_dataset(tmp_path)
+    images_bin = tmp_path / "sparse" / "0" / "images.bin"
+    data = bytearray(images_bin.read_bytes())
+    name_end = data.index(b"\0", 8 + 64)
+    data[name_end + 1:name_end + 9] = struct.pack("<Q", 2**40)
+    images_bin.write_bytes(bytes(data))
+    expect_error(r"images\.bin: image 0 2D points: 1099511627776 entries do not fit", tmp_path)
 
 
 def test_image_listed_but_not_on_disk(tmp_path):

@@ -20,7 +20,7 @@ from test_data import write_dataset
 from hico_plugin.data import ColmapDataParserConfig
 from hico_plugin.errors import HicoError
 
-FUZZ = settings(max_examples=int(os.environ.get("HICO_FUZZ_EXAMPLES", "40")), deadline=None, derandomize=True,
+FUZZ = settings(max_examples=int(os.environ.get("HICO_FUZZ_EXAMPLES", "200")), deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pycolmap
 
 from hico_plugin.data.checks import check_intrinsics
+from hico_plugin.data.colmap_bin import check_binary_model
 from hico_plugin.data.undistort import SUPPORTED_MODELS
 from hico_plugin.errors import HicoError
 
@@ -44,6 +45,8 @@ def find_model_dir(data_dir: Path) -> Path:
 
 def read_colmap_model(model_dir: Path) -> ColmapModel:
     """Read and check the model in ``model_dir``; every problem is one HicoError line."""
+    if (model_dir / "images.bin").is_file():
+        check_binary_model(model_dir)  # before pycolmap, which trusts the counts in the file
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except Exception as err:  # noqa: BLE001 -- pycolmap raises bare RuntimeError/ValueError on bad files
