@@ -14,8 +14,6 @@ import torch
 from hico_plugin.cli import evaluate as eval_cli
 from hico_plugin.cli import export as export_cli
 from hico_plugin.cli import render as render_cli
-from hico_plugin.cli.train import parse as parse_train
-from hico_plugin.cli.train import train
 from hico_plugin.engine import load_config, save_config
 from hico_plugin.engine import load_run
 from hico_plugin.export import read_ply
@@ -25,14 +23,9 @@ from hico_plugin.mesh.mesh import write_ply as write_mesh
 from hico_plugin.viewer.options import RenderOptions
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    config = parse_train(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
-                          "--output-dir", str(out), "--model.eval-lpips", "none",
-                          "--model.renderer.no-use-compile"])
-    train(config)
-    return out
+@pytest.fixture
+def run_dir(tiny_run):
+    return tiny_run
 
 
 def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsys):
