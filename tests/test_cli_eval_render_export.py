@@ -14,25 +14,19 @@ import torch
 from hico_plugin.cli import evaluate as eval_cli
 from hico_plugin.cli import export as export_cli
 from hico_plugin.cli import render as render_cli
-from hico_plugin.cli.train import parse as parse_train
-from hico_plugin.cli.train import train
 from hico_plugin.engine import load_config, save_config
 from hico_plugin.engine import load_run
 from hico_plugin.export import read_ply
+from hico_plugin.field.field import FieldConfig
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
 from hico_plugin.mesh.mesh import TriangleMesh
 from hico_plugin.mesh.mesh import write_ply as write_mesh
 from hico_plugin.viewer.options import RenderOptions
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    config = parse_train(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
-                          "--output-dir", str(out), "--model.eval-lpips", "none",
-                          "--model.renderer.no-use-compile"])
-    train(config)
-    return out
+@pytest.fixture
+def run_dir(tiny_run):
+    return tiny_run
 
 
 def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsys):
@@ -194,8 +188,8 @@ def test_missing_config_file(cli, tmp_path, capsys):
 
 @pytest.mark.parametrize("cli", sorted(CLIS))
 def test_config_that_is_not_a_run(cli, tmp_path, capsys):
-    save_config(RenderOptions(), tmp_path / "config.yml")  # a valid config.yml of something else
-    assert "not a training run's config.yml" in _error_of(cli, tmp_path / "config.yml", capsys)
+    save_config(FieldConfig(), tmp_path / "config.yml")  # a valid config.yml of something else
+    assert "expected a training run's config.yml, got FieldConfig" in _error_of(cli, tmp_path / "config.yml", capsys)
     (tmp_path / "plain.yml").write_text("max_steps: 3\n")
     assert "expected a config written by save_config" in _error_of(cli, tmp_path / "plain.yml", capsys)
 
