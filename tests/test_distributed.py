@@ -95,7 +95,7 @@ def test_two_workers_batch_one_match_one_worker_batch_two(tmp_path):
 
     # Only rank 0 wrote files; its checkpoint holds the RNG state of both ranks.
     run = tmp_path / "ddp"
-    assert {p.name for p in run.iterdir()} == {"config.yml", "metrics.jsonl", "checkpoints", "eval.json"}
+    assert {p.name for p in run.iterdir()} == {"config.yml", "metrics.jsonl", "checkpoints", "eval.json", ".lock"}
     payload = load_checkpoint(list_checkpoints(run / "checkpoints")[-1])
     assert payload["world_size"] == 2 and len(payload["rng"]) == 2
     lines = (run / "metrics.jsonl").read_text().splitlines()
