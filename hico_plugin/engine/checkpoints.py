@@ -79,8 +79,10 @@ def load_checkpoint(path: Path, mmap: bool = False) -> dict[str, Any]:
         payload = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except Exception as err:  # noqa: BLE001 - truncated, random bytes, or a pickle naming code
         first = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
-        if "weights_only" in str(err) or "Unsupported global" in str(err):
+        if "Unsupported global" in str(err):  # a pickle naming code, not merely a broken file
             first = "it holds Python objects other than tensors and numbers; refused without running them"
+        elif "Weights only load failed" in str(err) or "zip archive" in str(err):
+            first = "truncated or corrupt, not a complete torch checkpoint file"
         raise HicoError(f"{path}: not a readable checkpoint ({first})") from None
     if not isinstance(payload, dict) or "step" not in payload or "model" not in payload:
         raise HicoError(f"{path}: not a hico checkpoint (expected keys 'step' and 'model')")
