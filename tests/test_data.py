@@ -222,7 +222,9 @@ def pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("model", sorted(DISTORTED))
-def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
+def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model, monkeypatch):
+    user_cache = tmp_path / "user_cache"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(user_cache))
     params, opencv_coefficients = DISTORTED[model]
     size = (80, 60)
     written = write_dataset(tmp_path, model=model, params=params, size=size, num_images=2, write_images=False)
@@ -257,7 +259,8 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
     assert error.mean() < 1.5 and np.percentile(error, 99) < 6, (error.mean(), error.max())
 
     # undistorted once: the cache on disk serves later loads, even if the original changes
-    cached = list((tmp_path / ".hico_cache").rglob(f"{written['names'][0]}.png"))
+    assert not (tmp_path / ".hico_cache").exists()
+    cached = list((user_cache / "hico_plugin").rglob(f"{written['names'][0]}.png"))
     assert len(cached) == 1
     cv2.imwrite(str(tmp_path / "images" / written["names"][0]), np.zeros_like(distorted))
     again = ColmapDataParserConfig(data=tmp_path, test_every=0).setup()
@@ -374,12 +377,11 @@ def test_linear_quantiles_match_torch_quantile():
         assert torch.allclose(linear_quantiles(values[:, :count], probs), expected)
 
 
-def test_read_only_dataset_caches_undistorted_images_in_the_user_cache(tmp_path, monkeypatch):
+def test_undistorted_images_are_cached_in_the_user_cache_not_the_dataset(tmp_path, monkeypatch):
     params, _ = DISTORTED["SIMPLE_RADIAL"]
     root = tmp_path / "dataset"
     write_dataset(root, model="SIMPLE_RADIAL", params=params, size=(80, 60), num_images=2)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user_cache"))
-    monkeypatch.setattr("hico_plugin.data.parser.os.access", lambda path, mode: False)
     dataset = ColmapDataParserConfig(data=root, test_every=0).setup()
     dataset.image(0)
     assert not (root / ".hico_cache").exists()

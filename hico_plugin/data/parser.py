@@ -46,8 +46,8 @@ class ColmapDataParserConfig(InstantiateConfig):
     cache_mb: int = 2048
     """Budget of the in-memory cache of decoded images (LRU, in MB)."""
     cache_dir: Path | None = None
-    """Where undistorted images are cached; default DIR/.hico_cache, or ~/.cache/hico_plugin when DIR
-    is read-only."""
+    """Where undistorted images are cached; default $XDG_CACHE_HOME/hico_plugin/datasets/<hash of DIR>
+    (~/.cache/...), never inside the dataset folder."""
 
     def __post_init__(self) -> None:
         # accept plain strings from Python callers and YAML configs
@@ -175,11 +175,9 @@ class ColmapDataParserConfig(InstantiateConfig):
         key = hashlib.sha1(key_source.encode()).hexdigest()[:12]
         if self.cache_dir is not None:
             base = self.cache_dir
-        elif os.access(self.data, os.W_OK):
-            base = self.data / ".hico_cache"
-        else:
+        else:  # never inside the user's dataset folder: it may be shared, versioned or read-only
             user_cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "hico_plugin"
-            base = user_cache / hashlib.sha1(str(self.data.resolve()).encode()).hexdigest()[:12]
+            base = user_cache / "datasets" / hashlib.sha1(str(self.data.resolve()).encode()).hexdigest()[:12]
         return base / f"undistorted_{key}"
 
     def _metadata(self) -> dict[str, Any]:

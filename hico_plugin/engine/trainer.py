@@ -250,7 +250,8 @@ class Trainer:
                 dist_utils.broadcast_module_(self.model)
             self.optimizers = self._make_optimizers()
         if self.is_main:  # resume / overwrite are one-off actions, not properties of the run
-            save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml")
+            save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml",
+                        absolute_paths=True)
 
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))

@@ -44,6 +44,9 @@ class SfmOptions:
     camera_model: str = "OPENCV"
     """COLMAP camera model estimated for the photos (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL,
     OPENCV, OPENCV_FISHEYE, ...); images are undistorted to PINHOLE at the end."""
+    camera_params: str = ""
+    """Known intrinsics as COLMAP lists them for --camera-model (e.g. PINHOLE: "fx,fy,cx,cy"); empty =
+    estimated, starting from the EXIF focal length (or 1.2 x the image size without EXIF)."""
     camera_mode: CameraMode = "single"
     """single: one camera for all photos; per-folder: one per sub-folder; per-image: one each."""
     max_features: int = 8192
@@ -78,7 +81,7 @@ def run_sfm(input_dir: Path, names: list[str], out: Path, options: SfmOptions, r
     work = out / "colmap"
     database = work / "database.db"
     pycolmap.logging.minloglevel = 2  # COLMAP's INFO/WARNING lines would drown the progress bars
-    key = stage_key(input_key, options.camera_model, options.camera_mode, options.max_features,
+    key = stage_key(input_key, options.camera_model, options.camera_params, options.camera_mode, options.max_features,
                     options.max_image_size)
     runner.run("features", key, lambda report: _extract(database, input_dir, names, options, report))
     key = stage_key(key, options.matcher)
@@ -97,22 +100,18 @@ def _extract(database: Path, input_dir: Path, names: list[str], options: SfmOpti
     database.unlink(missing_ok=True)  # a half-written database from a crash is not resumable
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
+    reader.camera_params = options.camera_params
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.max_image_size = options.max_image_size
     extraction.sift.max_num_features = options.max_features
     mode = {"single": pycolmap.CameraMode.SINGLE, "per-folder": pycolmap.CameraMode.PER_FOLDER,
             "per-image": pycolmap.CameraMode.PER_IMAGE}[options.camera_mode]
-    # One call per chunk of images so the bar moves; the database keeps what earlier chunks wrote.
-    chunk = max(1, len(names) // 20)
-    for start in range(0, len(names), chunk):
-        pycolmap.extract_features(database, input_dir, image_names=names[start:start + chunk], camera_mode=mode,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-        if mode == pycolmap.CameraMode.SINGLE and start == 0:
-            # later chunks must join the first chunk's camera instead of opening a new one
-            with pycolmap.Database.open(database) as db:
-                reader.existing_camera_id = db.read_all_cameras()[0].camera_id
-        report(min(start + chunk, len(names)), len(names))
+    # pycolmap reports no per-image progress; the bar shows the stage running and its elapsed time
+    report(0, len(names))
+    pycolmap.extract_features(database, input_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    report(len(names), len(names))
 
 
 def _match(database: Path, options: SfmOptions) -> None:
