@@ -31,9 +31,15 @@ def preset_first(args: Sequence[str]) -> list[str]:
 
 def parse(args: Sequence[str]) -> HiCoTrainerConfig:
     """The training config that ``hico-train args`` describes (defaults for naming filled in)."""
-    config = tyro.extras.overridable_config_cli(
-        PRESETS, args=preset_first(args), prog="hico-train",
-        description="Train HiCo-GS (or one of its ablations) on a COLMAP dataset or a built-in scene.")
+    # tyro.extras.overridable_config_cli without its AvoidSubcommands: the dataset format is a subcommand
+    # (``hico-train hico-gs-lite --data DIR transforms``).
+    config = tyro.cli(
+        tyro.extras.subcommand_type_from_defaults(
+            defaults={name: preset for name, (_, preset) in PRESETS.items()},
+            descriptions={name: description for name, (description, _) in PRESETS.items()}),
+        args=preset_first(args), prog="hico-train", config=(tyro.conf.CascadeSubcommandArgs,),
+        description="Train HiCo-GS (or one of its ablations) on a dataset (COLMAP, transforms.json, "
+                    "hico-process output, ...) or a built-in scene.")
     if config.experiment_name == "unnamed":
         config.experiment_name = config.data.data.name if config.data.data is not None else config.data.scene
     if config.output_dir == Path("outputs/unnamed"):
