@@ -120,3 +120,22 @@ def test_transforms_missing_frames_are_named_and_points_fall_back(twins, tmp_pat
 
 def test_formats_are_registered_components():
     assert {"colmap", "transforms"} <= set(DATA_FORMATS.names())
+
+
+@pytest.mark.parametrize("factor", [0.001, 1000.0])
+def test_scene_units_do_not_matter(tmp_path, factor):
+    """The same scene in millimetres or kilometres loads to the same normalised cameras and points, so
+    octree sizes, LOD distances and learning rates (all set in the normalised frame) mean the same and
+    training is the same run."""
+    scene = generate_scene("tiny", tmp_path / "scene")
+    scaled = tmp_path / "scaled"
+    shutil.copytree(scene / "images", scaled / "images")
+    model = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    model.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.array([3.0, -7.0, 1.0]) * factor))
+    (scaled / "sparse" / "0").mkdir(parents=True)
+    model.write_binary(str(scaled / "sparse" / "0"))
+    original, rescaled = DataParserConfig(data=scene).setup(), DataParserConfig(data=scaled).setup()
+    assert rescaled.transform.scale == pytest.approx(original.transform.scale / factor, rel=1e-9)
+    assert torch.allclose(original.cameras.viewmats, rescaled.cameras.viewmats, atol=1e-5)
+    assert torch.allclose(original.points, rescaled.points, atol=1e-5)
+    assert original.cameras_extent() == pytest.approx(rescaled.cameras_extent(), rel=1e-5)
