@@ -14,7 +14,7 @@ from typing import Sequence
 import tyro
 
 from hico_plugin.cli import run_cli
-from hico_plugin.presets import PRESETS, HiCoTrainerConfig
+from hico_plugin.presets import HiCoTrainerConfig, all_presets
 
 # Options whose value may coincide with a preset name; such a value is not the preset.
 _VALUE_OPTIONS = ("--method-name", "--experiment-name", "--method_name", "--experiment_name")
@@ -22,9 +22,9 @@ _VALUE_OPTIONS = ("--method-name", "--experiment-name", "--method_name", "--expe
 
 def preset_first(args: Sequence[str]) -> list[str]:
     """``args`` with the first preset name moved to the front, so flag order does not matter."""
-    args = list(args)
+    args, presets = list(args), all_presets()
     for i, arg in enumerate(args):
-        if arg in PRESETS and (i == 0 or args[i - 1] not in _VALUE_OPTIONS):
+        if arg in presets and (i == 0 or args[i - 1] not in _VALUE_OPTIONS):
             return [arg] + args[:i] + args[i + 1:]
     return args
 
@@ -33,10 +33,11 @@ def parse(args: Sequence[str]) -> HiCoTrainerConfig:
     """The training config that ``hico-train args`` describes (defaults for naming filled in)."""
     # tyro.extras.overridable_config_cli without its AvoidSubcommands: the dataset format is a subcommand
     # (``hico-train hico-gs-lite --data DIR transforms``).
+    presets = all_presets()
     config = tyro.cli(
         tyro.extras.subcommand_type_from_defaults(
-            defaults={name: preset for name, (_, preset) in PRESETS.items()},
-            descriptions={name: description for name, (description, _) in PRESETS.items()}),
+            defaults={name: preset for name, (_, preset) in presets.items()},
+            descriptions={name: description for name, (description, _) in presets.items()}),
         args=preset_first(args), prog="hico-train", config=(tyro.conf.CascadeSubcommandArgs,),
         description="Train HiCo-GS (or one of its ablations) on a dataset (COLMAP, transforms.json, "
                     "hico-process output, ...) or a built-in scene.")

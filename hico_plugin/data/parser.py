@@ -14,20 +14,23 @@ import numpy as np
 import torch
 import tyro
 
-import hico_plugin.data.formats.colmap  # noqa: F401 -- registers the built-in formats
-import hico_plugin.data.formats.transforms  # noqa: F401
 from hico_plugin.cameras import Cameras
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
 from hico_plugin.data.dataset import CameraSource, Dataset
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
+from hico_plugin.data.formats.colmap import ColmapFormat
+from hico_plugin.data.formats.transforms import TransformsFormat
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
 
-# Formats as tyro subcommands (``format:transforms --format.file x.json``); None = detect.
+# The built-in formats as tyro subcommands (``hico-train ... --data DIR transforms --file x.json``);
+# None = detect. Listed here rather than read from DATA_FORMATS: reading a registry at import loads
+# plug-ins, which may import this module. A plug-in's format is found by detection.
 FormatChoice = Optional[tyro.extras.subcommand_type_from_defaults(
-    {name: DATA_FORMATS.get(name)() for name in DATA_FORMATS.names()}, prefix_names=False)]
+    {"colmap": ColmapFormat(), "transforms": TransformsFormat()}, prefix_names=False)]
 
 
 def detect_format(data_dir: Path) -> DataFormat:
@@ -105,6 +108,12 @@ class DataParserConfig(InstantiateConfig):
         train_indices, test_indices = self._split(record.names)
 
         sources = {cid: self._camera_source(camera, downscale) for cid, camera in record.cameras.items()}
+        for camera_id, source in sources.items():  # the size training sees, after --downscale
+            width, height = source.pinhole.width, source.pinhole.height
+            if min(width, height) < MIN_LOADED_SIZE:
+                raise HicoError(f"{data_dir}: camera {camera_id} loads at {width}x{height} px; expected "
+                                f"at least {MIN_LOADED_SIZE}x{MIN_LOADED_SIZE} (lower --downscale)")
+        check_image_sizes(image_paths, [sources[camera_id].full_size for camera_id in record.camera_ids])
         viewmats_world = torch.from_numpy(record.viewmats)
         points_world = torch.from_numpy(record.points)
         transform = SceneTransform.identity()
@@ -211,8 +220,9 @@ class DataParserConfig(InstantiateConfig):
             return [None] * len(record.names)
         paths = []
         for name in record.names:
-            candidates = (resolve_inside(mask_dir, f"{name}.png", f"mask of {name!r}"),
-                          resolve_inside(mask_dir, str(Path(name).with_suffix(".png")), f"mask of {name!r}"))
+            what = f"masks: mask of image '{name}'"
+            candidates = (resolve_inside(mask_dir, f"{name}.png", what),
+                          resolve_inside(mask_dir, Path(name).with_suffix(".png").as_posix(), what))
             paths.append(next((path for path in candidates if path.is_file()), None))
         return paths
 
