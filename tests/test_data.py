@@ -10,7 +10,7 @@ import pycolmap
 import pytest
 import torch
 
-from hico_plugin.data import ColmapDataParserConfig, SceneTransform
+from hico_plugin.data import DataParserConfig, SceneTransform
 from hico_plugin.data.cache import ByteLRUCache
 from hico_plugin.data.dataset import linear_quantiles
 
@@ -90,7 +90,7 @@ def write_dataset(
 
 def test_pinhole_binary_model_loads_normalised(tmp_path):
     written = write_dataset(tmp_path, num_images=10)
-    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    dataset = DataParserConfig(data=tmp_path).setup()
 
     assert dataset.image_names == written["names"]
     assert dataset.train_indices.dtype == torch.long
@@ -132,7 +132,7 @@ def test_legacy_text_model_simple_pinhole(tmp_path):
     write_dataset(tmp_path, model="SIMPLE_PINHOLE", text=True, num_images=4)
     for extra in ("rigs.txt", "frames.txt"):  # a COLMAP < 3.12 model has neither
         (tmp_path / "sparse" / "0" / extra).unlink()
-    dataset = ColmapDataParserConfig(data=tmp_path, test_every=0, normalize=False).setup()
+    dataset = DataParserConfig(data=tmp_path, test_every=0, normalize=False).setup()
     assert len(dataset) == 4 and len(dataset.test_indices) == 0
     assert torch.allclose(dataset.cameras.Ks[0], torch.tensor([[32.0, 0, 20], [0, 32, 15], [0, 0, 1]]))
     assert dataset.transform.scale == 1.0
@@ -140,15 +140,15 @@ def test_legacy_text_model_simple_pinhole(tmp_path):
 
 def test_explicit_test_names(tmp_path):
     written = write_dataset(tmp_path)
-    dataset = ColmapDataParserConfig(data=tmp_path, test_names=(written["names"][4], written["names"][1])).setup()
+    dataset = DataParserConfig(data=tmp_path, test_names=(written["names"][4], written["names"][1])).setup()
     assert dataset.test_indices.tolist() == [1, 4]
     assert dataset.train_indices.tolist() == [0, 2, 3, 5]
 
 
 def test_downscale_resizes_on_load_or_reads_images_n(tmp_path):
     write_dataset(tmp_path)
-    full = ColmapDataParserConfig(data=tmp_path).setup()
-    half = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
+    full = DataParserConfig(data=tmp_path).setup()
+    half = DataParserConfig(data=tmp_path, downscale=2).setup()
     assert half.image(1).shape == (HEIGHT // 2, WIDTH // 2, 3)
     assert torch.allclose(half.cameras.Ks[:, :2], full.cameras.Ks[:, :2] / 2)
     assert half.cameras.widths.tolist() == [WIDTH // 2] * 6
@@ -156,7 +156,7 @@ def test_downscale_resizes_on_load_or_reads_images_n(tmp_path):
     (tmp_path / "images_2").mkdir()
     for name in full.image_names:
         cv2.imwrite(str(tmp_path / "images_2" / name), np.full((HEIGHT // 2, WIDTH // 2, 3), 7, np.uint8))
-    from_folder = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
+    from_folder = DataParserConfig(data=tmp_path, downscale=2).setup()
     assert (from_folder.image(0) == 7).all()
 
 
@@ -164,7 +164,7 @@ def test_image_stored_at_exact_downscale_is_accepted(tmp_path):
     written = write_dataset(tmp_path)
     name = written["names"][0]
     cv2.imwrite(str(tmp_path / "images" / name), np.full((HEIGHT // 2, WIDTH // 2, 3), 50, np.uint8))
-    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    dataset = DataParserConfig(data=tmp_path).setup()
     assert dataset.image(0).shape == (HEIGHT, WIDTH, 3) and (dataset.image(0) == 50).all()
 
 
@@ -185,7 +185,7 @@ def test_masks_ground_truth_and_metadata(tmp_path):
     np.save(tmp_path / "ground_truth" / "surface_points.npy", surface)
     (tmp_path / "scene.json").write_text('{"name": "tiny", "effects": ["exposure"]}')
 
-    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    dataset = DataParserConfig(data=tmp_path).setup()
     loaded_mask = dataset.mask(1)
     assert loaded_mask.dtype == torch.bool and loaded_mask.shape == (HEIGHT, WIDTH, 1)
     assert loaded_mask[:, : WIDTH // 2].all() and not loaded_mask[:, WIDTH // 2 :].any()
@@ -199,7 +199,7 @@ def test_masks_ground_truth_and_metadata(tmp_path):
     )
     assert dataset.metadata["effects"] == ["exposure"]
 
-    half = ColmapDataParserConfig(data=tmp_path, downscale=2).setup()
+    half = DataParserConfig(data=tmp_path, downscale=2).setup()
     assert half.gt_depth(1).shape == (HEIGHT // 2, WIDTH // 2, 1)
     assert set(np.unique(half.gt_depth(1).numpy())) <= set(np.unique(depth * np.float32(half.transform.scale)))
     assert half.mask(1).shape == (HEIGHT // 2, WIDTH // 2, 1)
@@ -222,7 +222,9 @@ def pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("model", sorted(DISTORTED))
-def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
+def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model, monkeypatch):
+    user_cache = tmp_path / "user_cache"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(user_cache))
     params, opencv_coefficients = DISTORTED[model]
     size = (80, 60)
     written = write_dataset(tmp_path, model=model, params=params, size=size, num_images=2, write_images=False)
@@ -242,7 +244,7 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
     for name in written["names"]:
         cv2.imwrite(str(tmp_path / "images" / name), distorted[..., ::-1])
 
-    dataset = ColmapDataParserConfig(data=tmp_path, test_every=0).setup()
+    dataset = DataParserConfig(data=tmp_path, test_every=0).setup()
     assert camera.model.name == model
     image = dataset.image(0).numpy().astype(np.float64)
     K = dataset.cameras.Ks[0].double().numpy()
@@ -257,10 +259,11 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model):
     assert error.mean() < 1.5 and np.percentile(error, 99) < 6, (error.mean(), error.max())
 
     # undistorted once: the cache on disk serves later loads, even if the original changes
-    cached = list((tmp_path / ".hico_cache").rglob(f"{written['names'][0]}.png"))
+    assert not (tmp_path / ".hico_cache").exists()
+    cached = list((user_cache / "hico_plugin").rglob(f"{written['names'][0]}.png"))
     assert len(cached) == 1
     cv2.imwrite(str(tmp_path / "images" / written["names"][0]), np.zeros_like(distorted))
-    again = ColmapDataParserConfig(data=tmp_path, test_every=0).setup()
+    again = DataParserConfig(data=tmp_path, test_every=0).setup()
     assert np.array_equal(again.image(0).numpy(), image.astype(np.uint8))
 
 
@@ -274,7 +277,7 @@ def test_opencv_undistortion_matches_cv2_undistort_points(tmp_path):
     spot[12:15, 60:63] = 255  # centre (61, 13) in OpenCV pixels
     for name in written["names"]:
         cv2.imwrite(str(tmp_path / "images" / name), spot)
-    dataset = ColmapDataParserConfig(data=tmp_path, test_every=0, cache_dir=tmp_path / "elsewhere").setup()
+    dataset = DataParserConfig(data=tmp_path, test_every=0, cache_dir=tmp_path / "elsewhere").setup()
     image = dataset.image(1).numpy()[..., 0].astype(np.float64)
     assert (tmp_path / "elsewhere").is_dir()
     K = dataset.cameras.Ks[1].double().numpy()
@@ -290,7 +293,7 @@ def test_opencv_undistortion_matches_cv2_undistort_points(tmp_path):
 # --------------------------------------------------------------------------- extents and caches
 def test_camera_distance_range_matches_slow_reference(tmp_path):
     write_dataset(tmp_path, num_images=9, num_points=300)
-    dataset = ColmapDataParserConfig(data=tmp_path).setup()
+    dataset = DataParserConfig(data=tmp_path).setup()
     centres = dataset.cameras.centers.double().numpy()[dataset.train_indices.numpy()]
     points = dataset.points.double().numpy()
     per_camera = []
@@ -307,7 +310,7 @@ def test_camera_distance_range_matches_slow_reference(tmp_path):
 def test_image_cache_is_bounded_by_bytes(tmp_path):
     write_dataset(tmp_path)
     one_image = HEIGHT * WIDTH * 3
-    dataset = ColmapDataParserConfig(data=tmp_path, cache_mb=1).setup()
+    dataset = DataParserConfig(data=tmp_path, cache_mb=1).setup()
     dataset.cache.max_bytes = 2 * one_image  # room for two decoded images
     for i in range(len(dataset)):
         dataset.image(i)
@@ -343,7 +346,7 @@ def test_builtin_tiny_scene_ground_truth_agrees_with_normalised_cameras(tmp_path
     from hico_plugin.scenes.generate import generate_scene
 
     root = generate_scene("tiny", tmp_path / "tiny")
-    dataset = ColmapDataParserConfig(data=str(root)).setup()  # a plain string path works too
+    dataset = DataParserConfig(data=str(root)).setup()  # a plain string path works too
     assert dataset.metadata["scene"] == "tiny" and len(dataset.test_indices) > 0
     surface = dataset.gt_surface_points
     for i in (0, len(dataset) - 1):
@@ -374,13 +377,12 @@ def test_linear_quantiles_match_torch_quantile():
         assert torch.allclose(linear_quantiles(values[:, :count], probs), expected)
 
 
-def test_read_only_dataset_caches_undistorted_images_in_the_user_cache(tmp_path, monkeypatch):
+def test_undistorted_images_are_cached_in_the_user_cache_not_the_dataset(tmp_path, monkeypatch):
     params, _ = DISTORTED["SIMPLE_RADIAL"]
     root = tmp_path / "dataset"
     write_dataset(root, model="SIMPLE_RADIAL", params=params, size=(80, 60), num_images=2)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user_cache"))
-    monkeypatch.setattr("hico_plugin.data.parser.os.access", lambda path, mode: False)
-    dataset = ColmapDataParserConfig(data=root, test_every=0).setup()
+    dataset = DataParserConfig(data=root, test_every=0).setup()
     dataset.image(0)
     assert not (root / ".hico_cache").exists()
     assert len(list((tmp_path / "user_cache" / "hico_plugin").rglob("view_000.png.png"))) == 1

@@ -11,12 +11,13 @@ import pytest
 from test_data import HEIGHT, WIDTH, write_dataset
 
 from hico_plugin.cli import inspect as inspect_cli
-from hico_plugin.data import ColmapDataParserConfig
+from hico_plugin.data import DataParserConfig
+from hico_plugin.data.formats.colmap import ColmapFormat
 from hico_plugin.errors import HicoError
 
 
 def parse(root, **options):
-    return ColmapDataParserConfig(data=root, **options).setup()
+    return DataParserConfig(data=root, **options).setup()
 
 
 def expect_error(match: str, root, **options) -> str:
@@ -33,7 +34,8 @@ def test_missing_directory(tmp_path):
 
 def test_no_sparse_model(tmp_path):
     (tmp_path / "images").mkdir()
-    expect_error(r"sparse/0: not found", tmp_path)
+    message = expect_error(r"no known dataset layout \(expected sparse/0 \(COLMAP\), transforms.json", tmp_path)
+    assert "hico-process images" in message
     (tmp_path / "sparse" / "0").mkdir(parents=True)
     (tmp_path / "sparse" / "0" / "cameras.bin").write_bytes(b"")
     expect_error(r"expected cameras, images and points3D as \.bin or \.txt", tmp_path)
@@ -62,12 +64,12 @@ def test_huge_count_in_a_model_file_fails_fast(tmp_path):
 def test_image_listed_but_not_on_disk(tmp_path):
     written = write_dataset(tmp_path)
     (tmp_path / "images" / written["names"][3]).unlink()
-    expect_error(r"view_003\.png: image listed in sparse/0 but not on disk \(1 of 6 missing\)", tmp_path)
+    expect_error(r"view_003\.png: image listed in the dataset but not on disk \(1 of 6 missing\)", tmp_path)
 
 
 def test_missing_image_folder(tmp_path):
     write_dataset(tmp_path)
-    expect_error(r"images_x: image folder not found \(set --images-dir", tmp_path, images_dir="images_x")
+    expect_error(r"images_x: image folder not found \(set --images-dir", tmp_path, format=ColmapFormat(images_dir="images_x"))
 
 
 def test_image_size_disagrees_with_camera(tmp_path):

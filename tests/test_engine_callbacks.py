@@ -41,3 +41,23 @@ def test_tensorboard_without_the_package_is_a_clear_error(tmp_path):
                            device="cpu", progress="none", vis="tensorboard")
     with pytest.raises(HicoError, match="config.vis: 'tensorboard' needs the tensorboard package"):
         config.setup()
+
+
+def test_progress_lines_print_the_expected_wall_time_from_the_first_steps():
+    import io
+
+    from hico_plugin.engine.callbacks import ProgressLines
+
+    now = [0.0]
+    out = io.StringIO()
+    lines = ProgressLines(max_steps=100, timed_steps=5, every_seconds=30.0, stream=out, clock=lambda: now[0])
+    lines.on_train_start(None, 0)
+    now[0] = 10.0  # step 1: one-off costs, left out of the estimate
+    lines.on_step_end(0, {"loss": 0.5})
+    for step in range(1, 100):
+        now[0] += 2.0
+        lines.on_step_end(step, {"loss": 0.5})
+    text = out.getvalue()
+    # 10 s + 99 steps x 2 s = 3:28 expected, known after step 6
+    assert "expected wall time 3:28 (2.00 s/step over steps 2-6" in text
+    assert "step 100/100" in text and text.count("\nstep ") >= 6

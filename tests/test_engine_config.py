@@ -56,3 +56,16 @@ def test_missing_fields_take_defaults_and_unknown_fields_are_errors(tmp_path):
     path.write_text("max_steps: [\n")
     with pytest.raises(HicoError, match="not valid YAML"):
         load_config(path)
+
+
+def test_run_config_paths_are_written_absolute(tmp_path, monkeypatch):
+    """A run's config.yml reloads from any working directory (hico-eval --load-config elsewhere)."""
+    from hico_plugin.data.parser import DataParserConfig
+    from hico_plugin.engine.config_io import load_config, save_config
+
+    monkeypatch.chdir(tmp_path)
+    config = DataParserConfig(data=Path("data/site"))
+    save_config(config, tmp_path / "run.yml", absolute_paths=True)
+    save_config(config, tmp_path / "preset.yml")
+    assert load_config(tmp_path / "run.yml").data == tmp_path / "data" / "site"
+    assert load_config(tmp_path / "preset.yml").data == Path("data/site")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from hico_plugin.data import ColmapDataParserConfig
+from hico_plugin.data import DataParserConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.mesh import (
     MeshExportConfig,
@@ -47,7 +47,7 @@ def tiny(tmp_path_factory):
     # 160 x 120 views: at the default 64 x 48 the ground seen at grazing angles is too coarsely sampled
     # for a surface within tau = 1.5 x the ground-truth spacing.
     root = generate_scene("tiny", tmp_path_factory.mktemp("scene") / "tiny", width=160, height=120)
-    return ColmapDataParserConfig(data=root, test_every=0).setup()
+    return DataParserConfig(data=root, test_every=0).setup()
 
 
 def _gt_maps(dataset):
@@ -135,7 +135,7 @@ def test_extract_mesh_with_nothing_drawn_is_a_clear_error(tiny):
             return out, None
 
     with pytest.raises(HicoError, match="no pixel of the 10 training views reaches opacity --min-alpha 0.5"):
-        extract_mesh(Empty(tiny), ColmapDataParserConfig(data=tiny.data_dir).setup(), MeshExportConfig())
+        extract_mesh(Empty(tiny), DataParserConfig(data=tiny.data_dir).setup(), MeshExportConfig())
     with pytest.raises(HicoError, match=r"has a plane depth in \(0, --max-depth 0.001\] \(COLMAP units\)"):
         extract_mesh(_ExactDepthModel(tiny), tiny, MeshExportConfig(max_depth=1e-3))
 

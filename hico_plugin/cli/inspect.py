@@ -11,11 +11,11 @@ from typing import Annotated
 import tyro
 
 from hico_plugin.cli import run_cli
-from hico_plugin.data import ColmapDataParserConfig, Dataset
+from hico_plugin.data import DataParserConfig, Dataset
 
 
 @dataclass
-class InspectConfig(ColmapDataParserConfig):
+class InspectConfig(DataParserConfig):
     """Load a COLMAP dataset as hico-train would and summarise it."""
 
     data: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")] = field()

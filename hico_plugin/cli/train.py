@@ -33,9 +33,16 @@ def preset_first(args: Sequence[str]) -> list[str]:
 
 def parse(args: Sequence[str]) -> HiCoTrainerConfig:
     """The training config that ``hico-train args`` describes (defaults for naming filled in)."""
-    config = tyro.extras.overridable_config_cli(
-        all_presets(), args=preset_first(args), prog="hico-train",
-        description="Train HiCo-GS (or one of its ablations) on a COLMAP dataset or a built-in scene.")
+    # tyro.extras.overridable_config_cli without its AvoidSubcommands: the dataset format is a subcommand
+    # (``hico-train hico-gs-lite --data DIR transforms``).
+    presets = all_presets()
+    config = tyro.cli(
+        tyro.extras.subcommand_type_from_defaults(
+            defaults={name: preset for name, (_, preset) in presets.items()},
+            descriptions={name: description for name, (description, _) in presets.items()}),
+        args=preset_first(args), prog="hico-train", config=(tyro.conf.CascadeSubcommandArgs,),
+        description="Train HiCo-GS (or one of its ablations) on a dataset (COLMAP, transforms.json, "
+                    "hico-process output, ...) or a built-in scene.")
     if config.experiment_name == "unnamed":
         config.experiment_name = config.data.data.name if config.data.data is not None else config.data.scene
     if config.output_dir == Path("outputs/unnamed"):  # nerfstudio's layout: one folder per run

@@ -64,6 +64,8 @@ class Dataset:
         undistorted_dir: Path | None,
         cache_bytes: int,
         metadata: dict[str, Any],
+        tracks: Any = None,
+        depth_paths: list[Path | None] | None = None,
     ):
         self.data_dir = data_dir
         self.image_names = image_names
@@ -79,6 +81,8 @@ class Dataset:
         self.mask_paths = mask_paths
         self.undistorted_dir = undistorted_dir
         self.metadata = metadata
+        self.tracks = tracks  # the format's SfM tracks (e.g. a pycolmap.Reconstruction) when it has them
+        self.depth_paths = depth_paths  # [N] the format's depth maps (transforms.json depth_file_path)
         self._cache = ByteLRUCache(cache_bytes)
         self._maps = ByteLRUCache(_MAPS_CACHE_BYTES)
         self._surface_points: Tensor | None = None

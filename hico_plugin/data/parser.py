@@ -1,60 +1,88 @@
-"""``ColmapDataParserConfig``: a COLMAP dataset directory -> ``Dataset``."""
+"""``DataParserConfig``: a dataset directory in any registered format -> ``Dataset``."""
 
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import torch
+import tyro
 
 from hico_plugin.cameras import Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
-from hico_plugin.data.colmap import ColmapModel, find_model_dir, read_colmap_model
 from hico_plugin.data.dataset import CameraSource, Dataset
+from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
+from hico_plugin.data.formats.colmap import ColmapFormat
+from hico_plugin.data.formats.transforms import TransformsFormat
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
-from hico_plugin.registry import Registry
 
-DATAPARSERS: Registry[type[InstantiateConfig]] = Registry("data parser")
+# The built-in formats as tyro subcommands (``hico-train ... --data DIR transforms --file x.json``);
+# None = detect. Listed here rather than read from DATA_FORMATS: reading a registry at import loads
+# plug-ins, which may import this module. A plug-in's format is found by detection.
+FormatChoice = Optional[tyro.extras.subcommand_type_from_defaults(
+    {"colmap": ColmapFormat(), "transforms": TransformsFormat()}, prefix_names=False)]
 
 
-@DATAPARSERS.register("colmap")
+def detect_format(data_dir: Path) -> DataFormat:
+    """The first registered format, by name, whose ``detect`` accepts DIR (colmap before transforms:
+    nerfstudio's COLMAP output holds both, and sparse/0 carries the points)."""
+    for name in DATA_FORMATS.names():
+        candidate = DATA_FORMATS.get(name)()
+        if candidate.detect(data_dir):
+            return candidate
+    raise HicoError(
+        f"data directory {data_dir}: no known dataset layout (expected sparse/0 (COLMAP), transforms.json "
+        f"(nerfstudio / instant-ngp), train/ + val/ with rgbs/ and metadata/ (Mega-NeRF); registered formats: "
+        f"{', '.join(DATA_FORMATS.names())}). For plain photos run: hico-process images {data_dir} --output OUT"
+    )
+
+
 @dataclass
-class ColmapDataParserConfig(InstantiateConfig):
-    """A COLMAP dataset: DIR/images, DIR/sparse/0, optional DIR/masks and DIR/ground_truth."""
+class DataParserConfig(InstantiateConfig):
+    """A dataset directory: COLMAP, nerfstudio / instant-ngp transforms.json, Mega-NeRF or hico-process output
+    (detected, or named with a format subcommand); optional DIR/masks and DIR/ground_truth."""
 
     data: Path = Path("data")
-    """Dataset directory holding images/ and sparse/0/ (cameras, images, points3D as .bin or .txt)."""
-    images_dir: str = "images"
-    """Name of the image folder inside the dataset directory."""
-    downscale: int = 1
-    """Load images at 1/N resolution: from <images_dir>_N/ when it exists, else resized on load."""
+    """Dataset directory."""
+    format: FormatChoice = None
+    """Dataset layout; default: detected from the directory's contents."""
+    downscale: int = 0
+    """Load images at 1/N resolution (from <images>_N/ when it exists, else resized on load); 0 = the
+    smallest power of two that brings the long side to --max-long-side."""
+    max_long_side: int = 1600
+    """Longest image side in pixels that --downscale 0 aims for (nerfstudio's default)."""
     test_every: int = 8
     """Every Nth view (sorted by name, index % N == 0) goes to the test split; 0 = no test split."""
     test_names: tuple[str, ...] = ()
     """Explicit test image names; when given, they replace --test-every."""
+    test_list: Optional[Path] = None
+    """A text file of test image names, one a line (replaces --test-every)."""
     masks: bool = True
-    """Use DIR/masks/<name>.png (white = keep) when it exists."""
+    """Use the format's masks, or DIR/masks/<name>.png (white = keep) when it exists."""
     normalize: bool = True
-    """Centre on the mean camera centre and scale the farthest camera to distance 1."""
+    """Centre on the mean camera centre and scale the farthest camera to distance 1, so the scene's
+    units (mm or km) do not matter."""
     cache_mb: int = 2048
     """Budget of the in-memory cache of decoded images (LRU, in MB)."""
-    cache_dir: Path | None = None
-    """Where undistorted images are cached; default DIR/.hico_cache, or ~/.cache/hico_plugin when DIR
-    is read-only."""
+    cache_dir: Optional[Path] = None
+    """Where undistorted images are cached; default $XDG_CACHE_HOME/hico_plugin/datasets/<hash of DIR>
+    (~/.cache/...), never inside the dataset folder."""
 
     def __post_init__(self) -> None:
         # accept plain strings from Python callers and YAML configs
         self.data = Path(self.data)
         self.cache_dir = Path(self.cache_dir) if self.cache_dir is not None else None
+        self.test_list = Path(self.test_list) if self.test_list is not None else None
         self.test_names = tuple(self.test_names)
 
     def setup(self, **kwargs: Any) -> Dataset:
@@ -64,81 +92,98 @@ class ColmapDataParserConfig(InstantiateConfig):
         """Read, check and normalise the dataset; images stay on disk until first used."""
         data_dir = self.data
         if not data_dir.is_dir():
-            raise HicoError(
-                f"data directory {data_dir}: not found (expected a COLMAP dataset with images/ and sparse/0)"
-            )
-        if self.downscale < 1:
-            raise HicoError(f"--downscale: expected a whole number >= 1, got {self.downscale}")
-        model_dir = find_model_dir(data_dir)
-        model = read_colmap_model(model_dir)
-        image_dir = self._image_dir()
-        image_paths = [resolve_inside(image_dir, name, f"{model_dir}/images: image '{name}'") for name in model.names]
-        missing = [str(path) for path in image_paths if not path.is_file()]
+            raise HicoError(f"data directory {data_dir}: not found (expected a dataset folder, e.g. images/ + sparse/0)")
+        if self.downscale < 0:
+            raise HicoError(f"--downscale: expected 0 (auto) or a whole number >= 1, got {self.downscale}")
+        record = (self.format or detect_format(data_dir)).read(data_dir)
+        for note in record.notes:
+            print(note, file=sys.stderr)
+        missing = [str(path) for path in record.image_paths if not path.is_file()]
         if missing:
             raise HicoError(
-                f"{missing[0]}: image listed in sparse/0 but not on disk ({len(missing)} of {len(image_paths)} missing)"
+                f"{missing[0]}: image listed in the dataset but not on disk ({len(missing)} of {len(record.image_paths)} missing)"
             )
-        train_indices, test_indices = self._split(model.names)
+        downscale = self.downscale or self._auto_downscale(record)
+        image_paths = [self._downscaled_path(path, downscale) for path in record.image_paths]
+        train_indices, test_indices = self._split(record.names)
 
-        sources = {camera_id: self._camera_source(camera) for camera_id, camera in model.cameras.items()}
+        sources = {cid: self._camera_source(camera, downscale) for cid, camera in record.cameras.items()}
         for camera_id, source in sources.items():  # the size training sees, after --downscale
             width, height = source.pinhole.width, source.pinhole.height
             if min(width, height) < MIN_LOADED_SIZE:
-                raise HicoError(f"{model_dir}/cameras: camera {camera_id} loads at {width}x{height} px; expected "
+                raise HicoError(f"{data_dir}: camera {camera_id} loads at {width}x{height} px; expected "
                                 f"at least {MIN_LOADED_SIZE}x{MIN_LOADED_SIZE} (lower --downscale)")
-        check_image_sizes(image_paths, [sources[camera_id].full_size for camera_id in model.camera_ids])
-        viewmats_colmap = torch.from_numpy(model.viewmats)
-        points_colmap = torch.from_numpy(model.points)
+        check_image_sizes(image_paths, [sources[camera_id].full_size for camera_id in record.camera_ids])
+        viewmats_world = torch.from_numpy(record.viewmats)
+        points_world = torch.from_numpy(record.points)
         transform = SceneTransform.identity()
         if self.normalize:
-            rotations, translations = viewmats_colmap[:, :3, :3], viewmats_colmap[:, :3, 3:]
+            rotations, translations = viewmats_world[:, :3, :3], viewmats_world[:, :3, 3:]
             centres = -(rotations.transpose(1, 2) @ translations).squeeze(-1)
-            transform = SceneTransform.from_camera_centres(centres, fallback_points=points_colmap)
-        pinholes = [sources[camera_id].pinhole for camera_id in model.camera_ids]
+            transform = SceneTransform.from_camera_centres(centres, fallback_points=points_world)
+        pinholes = [sources[camera_id].pinhole for camera_id in record.camera_ids]
         cameras = Cameras(
-            viewmats=transform.viewmats_from_colmap(viewmats_colmap).to(torch.float32),
+            viewmats=transform.viewmats_from_colmap(viewmats_world).to(torch.float32),
             Ks=torch.from_numpy(np.stack([calibration_matrix(camera) for camera in pinholes])).to(torch.float32),
             widths=torch.tensor([camera.width for camera in pinholes], dtype=torch.int64),
             heights=torch.tensor([camera.height for camera in pinholes], dtype=torch.int64),
         )
         return Dataset(
             data_dir=data_dir,
-            image_names=model.names,
+            image_names=record.names,
             image_paths=image_paths,
-            camera_ids=model.camera_ids,
+            camera_ids=record.camera_ids,
             sources=sources,
             cameras=cameras,
             transform=transform,
-            points=transform.points_from_colmap(points_colmap).to(torch.float32),
-            point_colors=torch.from_numpy(model.point_colors),
+            points=transform.points_from_colmap(points_world).to(torch.float32),
+            point_colors=torch.from_numpy(record.point_colors),
             train_indices=train_indices,
             test_indices=test_indices,
-            mask_paths=self._mask_paths(model.names),
-            undistorted_dir=self._undistorted_dir(model)
+            mask_paths=self._mask_paths(record),
+            undistorted_dir=self._undistorted_dir(record, downscale)
             if any(s.needs_undistortion for s in sources.values())
             else None,
             cache_bytes=self.cache_mb * 2**20,
             metadata=self._metadata(),
+            tracks=record.tracks,
+            depth_paths=record.depth_paths,
         )
 
-    def _image_dir(self) -> Path:
-        downscaled = self.data / f"{self.images_dir}_{self.downscale}"
-        if self.downscale > 1 and downscaled.is_dir():
-            return downscaled
-        image_dir = self.data / self.images_dir
-        if not image_dir.is_dir():
-            raise HicoError(f"{image_dir}: image folder not found (set --images-dir to the folder of the images)")
-        return image_dir
+    def _auto_downscale(self, record: SceneRecord) -> int:
+        long_side = max(max(camera.width, camera.height) for camera in record.cameras.values())
+        factor = 1
+        while long_side / factor > self.max_long_side:
+            factor *= 2
+        if factor > 1:
+            print(f"downscale: images have a {long_side} px long side; loading at 1/{factor} "
+                  f"(--max-long-side {self.max_long_side}; --downscale 1 keeps full resolution)", file=sys.stderr)
+        return factor
+
+    def _downscaled_path(self, path: Path, factor: int) -> Path:
+        """``DIR/<folder>_N/<rest>`` when it exists (nerfstudio's images_N layout), else ``path``."""
+        if factor == 1:
+            return path
+        parts = path.relative_to(self.data).parts
+        candidate = self.data / f"{parts[0]}_{factor}" / Path(*parts[1:]) if len(parts) > 1 else None
+        return candidate if candidate is not None and candidate.is_file() else path
 
     def _split(self, names: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
         """(train, test) LongTensors of view indices (views are sorted by name)."""
-        if self.test_names:
+        test_names = self.test_names
+        if self.test_list is not None:
+            try:
+                test_names = tuple(line.strip() for line in self.test_list.read_text().splitlines() if line.strip())
+            except OSError as err:
+                raise HicoError(f"--test-list {self.test_list}: cannot be read ({err.strerror or err})") from None
+        if test_names:
             position = {name: i for i, name in enumerate(names)}
-            unknown = [name for name in self.test_names if name not in position]
+            unknown = [name for name in test_names if name not in position]
             if unknown:
-                raise HicoError(f"--test-names: {unknown[:5]} are not registered images of the dataset")
+                field = "--test-list" if self.test_list is not None else "--test-names"
+                raise HicoError(f"{field}: {unknown[:5]} are not registered images of the dataset")
             is_test = np.zeros(len(names), dtype=bool)
-            is_test[[position[name] for name in self.test_names]] = True
+            is_test[[position[name] for name in test_names]] = True
         elif self.test_every > 0:
             is_test = np.arange(len(names)) % self.test_every == 0
         elif self.test_every == 0:
@@ -152,45 +197,50 @@ class ColmapDataParserConfig(InstantiateConfig):
             raise HicoError(f"{field}: the test split takes all {len(names)} images, leaving none to train on")
         return torch.from_numpy(np.flatnonzero(~is_test)), torch.from_numpy(np.flatnonzero(is_test))
 
-    def _camera_source(self, camera) -> CameraSource:
+    def _camera_source(self, camera, downscale: int) -> CameraSource:
         full_size = (camera.width, camera.height)
         pinhole = pinhole_of(camera)
         return CameraSource(
             full_size=full_size,
             model=camera.model.name,
-            distorted=rescaled(camera, *_downscaled(full_size, self.downscale)),
-            pinhole=rescaled(pinhole, *_downscaled((pinhole.width, pinhole.height), self.downscale)),
+            distorted=rescaled(camera, *_downscaled(full_size, downscale)),
+            pinhole=rescaled(pinhole, *_downscaled((pinhole.width, pinhole.height), downscale)),
         )
 
-    def _mask_paths(self, names: list[str]) -> list[Path | None]:
+    def _mask_paths(self, record: SceneRecord) -> list[Path | None]:
+        if not self.masks:
+            return [None] * len(record.names)
+        if record.mask_paths is not None:
+            missing = [str(path) for path in record.mask_paths if path is not None and not path.is_file()]
+            if missing:
+                raise HicoError(f"{missing[0]}: mask listed in the dataset but not on disk ({len(missing)} missing)")
+            return list(record.mask_paths)
         mask_dir = self.data / "masks"
-        if not self.masks or not mask_dir.is_dir():
-            return [None] * len(names)
+        if not mask_dir.is_dir():
+            return [None] * len(record.names)
         paths = []
-        for name in names:
+        for name in record.names:
             what = f"masks: mask of image '{name}'"
             candidates = (resolve_inside(mask_dir, f"{name}.png", what),
                           resolve_inside(mask_dir, Path(name).with_suffix(".png").as_posix(), what))
             paths.append(next((path for path in candidates if path.is_file()), None))
         return paths
 
-    def _undistorted_dir(self, model: ColmapModel) -> Path:
+    def _undistorted_dir(self, record: SceneRecord, downscale: int) -> Path:
         """A folder keyed by everything the undistorted pixels depend on."""
         key_source = json.dumps(
-            [self.images_dir, self.downscale]
+            [str(record.image_paths[0].parent.relative_to(self.data)), downscale]
             + [
                 [cid, c.model.name, c.width, c.height, list(map(float, c.params))]
-                for cid, c in sorted(model.cameras.items())
+                for cid, c in sorted(record.cameras.items())
             ]
         )
         key = hashlib.sha1(key_source.encode()).hexdigest()[:12]
         if self.cache_dir is not None:
             base = self.cache_dir
-        elif os.access(self.data, os.W_OK):
-            base = self.data / ".hico_cache"
-        else:
+        else:  # never inside the user's dataset folder: it may be shared, versioned or read-only
             user_cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "hico_plugin"
-            base = user_cache / hashlib.sha1(str(self.data.resolve()).encode()).hexdigest()[:12]
+            base = user_cache / "datasets" / hashlib.sha1(str(self.data.resolve()).encode()).hexdigest()[:12]
         return base / f"undistorted_{key}"
 
     def _metadata(self) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Where training data comes from: a COLMAP directory, or a built-in scene when none is given."""
+"""Where training data comes from: a dataset directory (any registered format), or a built-in scene."""
 
 from __future__ import annotations
 
@@ -8,29 +8,30 @@ from pathlib import Path
 from typing import Any, Optional
 
 from hico_plugin.data.dataset import Dataset
-from hico_plugin.data.parser import ColmapDataParserConfig
+from hico_plugin.data.parser import DataParserConfig
 
 
 @dataclass
-class DataSourceConfig(ColmapDataParserConfig):
-    """A COLMAP dataset (``--data DIR``), or with no ``--data`` the built-in ``--scene`` (generated and
-    cached on first use)."""
+class DataSourceConfig(DataParserConfig):
+    """A dataset (``--data DIR``: COLMAP, transforms.json, hico-process output...), or with no ``--data``
+    the built-in ``--scene`` (generated and cached on first use)."""
 
     data: Optional[Path] = None
-    """COLMAP dataset directory (images/ + sparse/0); omit it to train on the built-in --scene."""
+    """Dataset directory (format detected, or named with format:NAME); omit it to train on the built-in --scene."""
     scene: str = "city-block"
     """Built-in scene used when --data is not given (city-block, pagoda, tiny)."""
 
     def __post_init__(self) -> None:
+        self.data = Path(self.data) if self.data is not None else None
         self.cache_dir = Path(self.cache_dir) if self.cache_dir is not None else None
         self.test_names = tuple(self.test_names)
-        self.data = Path(self.data) if self.data is not None else None
+        self.test_list = Path(self.test_list) if self.test_list is not None else None
 
     def setup(self, **kwargs: Any) -> Dataset:
         if self.data is not None:
             return super().setup(**kwargs)
         from hico_plugin.scenes.generate import generate_scene
 
-        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(ColmapDataParserConfig)}
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(DataParserConfig)}
         fields["data"] = generate_scene(self.scene)
-        return ColmapDataParserConfig(**fields).parse()
+        return DataParserConfig(**fields).parse()

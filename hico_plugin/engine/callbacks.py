@@ -144,3 +144,55 @@ class ProgressBar(TrainerCallback):
         if self.task is not None:
             self.progress.stop()
             self.task = None
+
+
+class ProgressLines(TrainerCallback):
+    """Plain progress lines for logs (stdout not a terminal): the expected wall time of the run once
+    the first steps are timed, then a line every ``every_seconds`` (and at the last step).
+
+    Step 1 is left out of the estimate: it carries one-off costs (kernel builds, caches filling)."""
+
+    def __init__(self, max_steps: int, timed_steps: int = 5, every_seconds: float = 60.0,
+                 stream: IO[str] | None = None, clock=time.perf_counter):
+        self.max_steps = max_steps
+        self.timed_steps = timed_steps
+        self.every_seconds = every_seconds
+        self.stream = stream or sys.stdout
+        self.clock = clock
+        self._start = self._timing_start = self._last = 0.0
+        self._first_step = 0
+
+    def _print(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
+
+    def on_train_start(self, trainer: "Trainer", step: int) -> None:
+        self._start = self._last = self.clock()
+        self._first_step = step
+        self._print(f"train: {self.max_steps - step} steps to go; timing the first {self.timed_steps} for an estimate")
+
+    def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
+        now = self.clock()
+        done = step + 1 - self._first_step
+        if done == 1:
+            self._timing_start = now
+        elif done == 1 + self.timed_steps:
+            per_step = (now - self._timing_start) / self.timed_steps
+            remaining = per_step * (self.max_steps - step - 1)
+            self._print(f"train: expected wall time {_duration(now - self._start + remaining)} "
+                        f"({per_step:.2f} s/step over steps 2-{done}; {_duration(remaining)} left)")
+        if now - self._last >= self.every_seconds or step + 1 == self.max_steps:
+            self._last = now
+            elapsed = now - self._start
+            left = elapsed / done * (self.max_steps - step - 1)
+            self._print(f"step {step + 1}/{self.max_steps}  {_duration(elapsed)} elapsed, ~{_duration(left)} left  "
+                        f"{format_bar_metrics(metrics)}")
+
+    def on_eval(self, step: int, results: dict[str, Any]) -> None:
+        if results.get("psnr") is not None:
+            self._print(f"step {step + 1}: test PSNR {results['psnr']:.2f} dB")
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0, int(round(seconds)))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else \
+        f"{seconds // 60}:{seconds % 60:02d}"

@@ -145,10 +145,22 @@ def config_to_yaml(config: Any) -> str:
     return yaml.dump(config, Dumper=_ConfigDumper, sort_keys=False, default_flow_style=False)
 
 
-def save_config(config: Any, path: str | os.PathLike) -> Path:
-    """Write ``config`` to ``path`` atomically (temp file + rename); returns the path."""
+class _AbsoluteDumper(_ConfigDumper):
+    pass
+
+
+# A run's config.yml must reload from any working directory: relative paths are written absolute.
+_AbsoluteDumper.add_multi_representer(
+    PurePath, lambda dumper, value: dumper.represent_scalar("!path", str(Path(value).expanduser().absolute()))
+)
+
+
+def save_config(config: Any, path: str | os.PathLike, absolute_paths: bool = False) -> Path:
+    """Write ``config`` to ``path`` atomically (temp file + rename); returns the path. With
+    ``absolute_paths`` every path is written absolute (a run's config.yml; presets stay relative)."""
     path = Path(path)
-    write_text_atomic(path, config_to_yaml(config))
+    dumper = _AbsoluteDumper if absolute_paths else _ConfigDumper
+    write_text_atomic(path, yaml.dump(config, Dumper=dumper, sort_keys=False, default_flow_style=False))
     return path
 
 

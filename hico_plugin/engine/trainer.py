@@ -31,7 +31,7 @@ from torch import nn
 
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine import distributed as dist_utils
-from hico_plugin.engine.callbacks import MetricsLog, ProgressBar, TensorBoardLog, TrainerCallback
+from hico_plugin.engine.callbacks import MetricsLog, ProgressBar, ProgressLines, TensorBoardLog, TrainerCallback
 from hico_plugin.engine.checkpoints import (
     latest_checkpoint,
     load_checkpoint,
@@ -91,8 +91,8 @@ class TrainerConfig(InstantiateConfig):
     """How many of the newest checkpoints to keep (0: keep all)."""
     log_every: int = 10
     """Write a metrics.jsonl line every N steps."""
-    progress: Literal["auto", "rich", "none"] = "auto"
-    """Progress bar: 'auto' shows it when stdout is a terminal."""
+    progress: Literal["auto", "rich", "lines", "none"] = "auto"
+    """Progress: 'auto' is a rich bar on a terminal and plain lines (with the expected wall time) otherwise."""
     vis: Literal["auto", "viewer", "tensorboard", "viewer+tensorboard", "none"] = "auto"
     """Live visualisation: 'auto' is 'viewer' on a terminal and 'none' otherwise."""
     resume: bool = False
@@ -272,7 +272,8 @@ class Trainer:
             self.optimizers = self._make_optimizers()
         if self.is_main:  # resume / overwrite are one-off actions, not properties of the run
             try:
-                save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml")
+                save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml",
+                            absolute_paths=True)
             except OSError as err:
                 raise HicoError(f"{self.run_dir / 'config.yml'}: cannot write ({err.strerror or err})") from None
 
@@ -284,6 +285,8 @@ class Trainer:
         self.callbacks.append(MetricsLog(self.run_dir / "metrics.jsonl", config.log_every))
         if config.progress == "rich" or (config.progress == "auto" and sys.stdout.isatty()):
             self.callbacks.append(ProgressBar(config.max_steps))
+        elif config.progress in ("auto", "lines"):
+            self.callbacks.append(ProgressLines(config.max_steps))
         if config.wants_tensorboard():
             try:
                 import tensorboard  # noqa: F401  (only checks that the optional package is there)

@@ -1,0 +1,54 @@
+"""Dataset formats: each reads one on-disk layout into a ``SceneRecord`` (cameras in COLMAP's
+conventions, OpenCV axes), and registers itself in ``DATA_FORMATS``.
+
+A format is a dataclass config with ``detect(data_dir) -> bool`` and ``read(data_dir) -> SceneRecord``;
+``--data DIR`` picks the first registered format whose ``detect`` accepts DIR unless a format is named
+as a subcommand (``format:transforms``). An outside package adds a layout by registering a config::
+
+    @DATA_FORMATS.register("my-layout")
+    @dataclass
+    class MyLayout(DataFormat): ...
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from hico_plugin.registry import Registry
+
+
+@dataclass
+class SceneRecord:
+    """What a format reads: views sorted by name, cameras with their distortion, poses, seed points."""
+
+    names: list[str]  # [N] view names (unique; also the undistortion cache's file names)
+    image_paths: list[Path]  # [N] full-resolution image files, inside the dataset folder
+    camera_ids: list[int]  # [N] camera of each view
+    cameras: dict[int, pycolmap.Camera]  # any COLMAP model; undistorted to pinhole on load
+    viewmats: np.ndarray  # [N, 4, 4] float64 world->camera, OpenCV axes (x right, y down, z forward)
+    points: np.ndarray  # [P, 3] float64 seed points in the same world frame
+    point_colors: np.ndarray  # [P, 3] uint8
+    mask_paths: list[Path | None] | None = None  # [N] white = keep; None: the default masks/ folder
+    depth_paths: list[Path | None] | None = None  # [N] metric depth maps (.npy/.png) when the format has them
+    tracks: Any = None  # optional per-observation SfM tracks (pycolmap.Reconstruction) for analyses
+    has_ground_truth: bool = False  # DIR/ground_truth holds exact depth / normals / surface points
+    notes: list[str] = field(default_factory=list)  # warnings to print once (missing frames, random points)
+
+
+@dataclass
+class DataFormat:
+    """Base of a registered dataset format config."""
+
+    def detect(self, data_dir: Path) -> bool:
+        raise NotImplementedError
+
+    def read(self, data_dir: Path) -> SceneRecord:
+        raise NotImplementedError
+
+
+DATA_FORMATS: Registry[type[DataFormat]] = Registry("dataset format")

@@ -1,0 +1,103 @@
+"""From photographs or a video to a dataset ``hico-train --data`` reads (pycolmap SfM)."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tyro
+
+from hico_plugin.config import InstantiateConfig
+from hico_plugin.errors import HicoError
+from hico_plugin.process.sfm import SfmOptions, list_images, print_summary, run_sfm
+from hico_plugin.process.stages import StageRunner, stage_key, write_json_atomic
+from hico_plugin.process.video import extract_frames
+
+
+def _check_output(out: Path, source: Path) -> Path:
+    out = out.expanduser().resolve()
+    if out == source or out in source.parents or source in out.parents:
+        raise HicoError(f"--output {out}: must not contain or lie inside the input {source}")
+    if out.exists() and not out.is_dir():
+        raise HicoError(f"--output {out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+@dataclass
+class ProcessImagesConfig(InstantiateConfig):
+    """A folder of photos (sub-folders allowed) -> a COLMAP dataset with undistorted pinhole images."""
+
+    input: tyro.conf.Positional[Path]
+    """Folder of photos (.jpg/.png/.tif...; sub-folders give per-folder cameras with --camera-mode per-folder)."""
+    output: Path
+    """Dataset folder to write (images/, images_2|4|8/, sparse/0/, colmap/, process.json)."""
+    sfm: SfmOptions = field(default_factory=SfmOptions)
+
+    def setup(self, **kwargs: Any) -> dict[str, Any]:
+        source = self.input.expanduser().resolve()
+        if not source.is_dir():
+            raise HicoError(f"{self.input}: folder of photos not found")
+        out = _check_output(self.output, source)
+        names = list_images(source)
+        if len(names) < 3:
+            raise HicoError(f"{source}: found {len(names)} photos (expected at least 3 .jpg/.png/.tif files)")
+        runner = StageRunner(out)
+        input_dir = out / "colmap" / "input"
+        files = [(name, (source / name).stat().st_size, (source / name).stat().st_mtime_ns) for name in names]
+        runner.run("copy", stage_key(files), lambda report: _copy(source, names, input_dir, report))
+        return _finish(run_sfm(input_dir, names, out, self.sfm, runner, files), out, runner)
+
+
+@dataclass
+class ProcessVideoConfig(InstantiateConfig):
+    """A video -> sharp frames sampled over its length -> a COLMAP dataset (sequential matching)."""
+
+    input: tyro.conf.Positional[Path]
+    """Video file (anything OpenCV's FFmpeg reads: .mp4, .mov, .avi...)."""
+    output: Path
+    """Dataset folder to write."""
+    num_frames: int = 300
+    """Frames to keep: the video is cut into this many windows and the sharpest frame of each is kept."""
+    sfm: SfmOptions = field(default_factory=lambda: SfmOptions(matcher="sequential"))
+
+    def setup(self, **kwargs: Any) -> dict[str, Any]:
+        video = self.input.expanduser().resolve()
+        out = _check_output(self.output, video)
+        runner = StageRunner(out)
+        input_dir = out / "colmap" / "input"
+        stat = video.stat() if video.is_file() else None
+        key = stage_key(str(video), stat and stat.st_size, stat and stat.st_mtime_ns, self.num_frames)
+
+        def frames(report):
+            if input_dir.exists():
+                shutil.rmtree(input_dir)
+            return extract_frames(video, input_dir, self.num_frames, report)
+
+        frame_summary = runner.run("frames", key, frames)
+        names = list_images(input_dir)
+        summary = run_sfm(input_dir, names, out, self.sfm, runner, key)
+        summary.update(frame_summary)
+        return _finish(summary, out, runner)
+
+
+def _copy(source: Path, names: list[str], target: Path, report) -> None:
+    if target.exists():
+        shutil.rmtree(target)
+    for done, name in enumerate(names, start=1):
+        (target / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(source / name, target / name)
+        report(done, len(names))
+
+
+def _finish(summary: dict[str, Any], out: Path, runner: StageRunner) -> dict[str, Any]:
+    summary["timings_s"] = runner.timings
+    summary["reused_stages"] = runner.reused
+    write_json_atomic(out / "process.json", summary)
+    print_summary(summary, out, runner.timings, runner.reused)
+    return summary
+
+
+__all__ = ["ProcessImagesConfig", "ProcessVideoConfig", "SfmOptions"]
