@@ -81,3 +81,9 @@ def format_table(rows: list[dict[str, Any]]) -> str:
                      f"  {cell(row['parent_pooled'], '13.2f')}  {cell(row['child_pooled'], '12.2f')}"
                      f"  {cell(row['adjustment'], '10.4f')}")
     return "\n".join(lines)
+
+
+def flat_metrics(rows: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The table as flat scalars for eval.json: ``clca_l<level>_<column>`` (None where undefined)."""
+    return {f"clca_l{row['level']}_{key}": row[key] for row in rows
+            for key in ("visible", "parent_found", "child_found", "parent_pooled", "child_pooled", "adjustment")}
