@@ -69,24 +69,14 @@ class BenchConfig(InstantiateConfig):
     """Evaluate on at most this many test views (evenly spaced over the test split)."""
     lpips: Literal["vgg", "alex", "none"] = "alex"
     """LPIPS backbone at evaluation ("none" skips LPIPS)."""
-    quick: bool = False
-    """Smoke mode: the tiny scene, hico-gs vs octree-gs, budgets 20 and 40, no LPIPS."""
     output_dir: Path = Path("bench_out")
     """Where cells/, runs/, results.json and report.md go."""
     device: str = "auto"
     """Training device (as hico-train --device)."""
 
     def resolved(self) -> BenchConfig:
-        """This config with --quick applied and its fields checked."""
+        """This config with its fields checked and its budgets sorted."""
         config = self
-        if config.quick:  # quick replaces only what the command line left at its default
-            default = BenchConfig()
-            keep = {name: getattr(config, name) for name in ("presets", "scenes", "budgets", "lpips", "downscale",
-                                                             "max_eval_views")
-                    if getattr(config, name) != getattr(default, name)}
-            quick = {"presets": ("octree-gs", "hico-gs"), "scenes": ("tiny",), "budgets": (20, 40),
-                     "lpips": "none", "downscale": 1, "max_eval_views": 2}
-            config = dataclasses.replace(config, **{**quick, **keep})
         unknown = [p for p in config.presets if p not in PRESETS]
         if unknown:
             raise HicoError(f"--presets: unknown {unknown}; expected some of {sorted(PRESETS)}")
@@ -102,6 +92,15 @@ class BenchConfig(InstantiateConfig):
 
     def scene_names(self) -> tuple[str, ...]:
         return (Path(self.data).name,) if self.data is not None else tuple(self.scenes)
+
+
+BENCH_MODES: dict[str, BenchConfig] = {
+    "full": BenchConfig(),
+    "quick": BenchConfig(presets=("octree-gs", "hico-gs"), scenes=("tiny",), budgets=(20, 40), lpips="none",
+                         downscale=1, max_eval_views=2),
+}
+"""The default settings of each mode (``hico-bench full`` / ``hico-bench quick``). A mode is chosen before
+the command line is parsed, so every flag the user types overrides it, whatever its value."""
 
 
 def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int) -> HiCoTrainerConfig:
