@@ -7,7 +7,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -16,6 +16,7 @@ from hico_plugin.cameras import Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.data.colmap import ColmapModel, find_model_dir, read_colmap_model
 from hico_plugin.data.dataset import CameraSource, Dataset
+from hico_plugin.data.splits import extrapolation_split, sparse_views
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
@@ -39,6 +40,12 @@ class ColmapDataParserConfig(InstantiateConfig):
     """Every Nth view (sorted by name, index % N == 0) goes to the test split; 0 = no test split."""
     test_names: tuple[str, ...] = ()
     """Explicit test image names; when given, they replace --test-every."""
+    split: Literal["interleaved", "extrapolate"] = "interleaved"
+    """interleaved: --test-every / --test-names; extrapolate: the 1/test-every views at one end of the
+    cameras' principal axis, with a gap of unused views so that every test camera is farther from the
+    training cameras than any training camera from its neighbour (data/splits.py)."""
+    train_every: int = 1
+    """Sparse views: train on every Nth training view only (e.g. 4)."""
     masks: bool = True
     """Use DIR/masks/<name>.png (white = keep) when it exists."""
     normalize: bool = True
@@ -76,6 +83,13 @@ class ColmapDataParserConfig(InstantiateConfig):
                 f"{missing[0]}: image listed in sparse/0 but not on disk ({len(missing)} of {len(image_paths)} missing)"
             )
         train_indices, test_indices = self._split(model.names)
+        if self.split == "extrapolate":
+            rotations, translations = model.viewmats[:, :3, :3], model.viewmats[:, :3, 3:]
+            centres = -(np.transpose(rotations, (0, 2, 1)) @ translations)[..., 0]
+            train_indices, test_indices = extrapolation_split(centres, self.test_every)
+        elif self.split != "interleaved":
+            raise HicoError(f"--split: expected interleaved or extrapolate, got '{self.split}'")
+        train_indices = sparse_views(train_indices, self.train_every)
 
         sources = {camera_id: self._camera_source(camera) for camera_id, camera in model.cameras.items()}
         viewmats_colmap = torch.from_numpy(model.viewmats)
