@@ -34,7 +34,7 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine import TrainerCallback, evaluate
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
-from hico_plugin.presets import PRESETS, HiCoTrainerConfig
+from hico_plugin.presets import HiCoTrainerConfig, all_presets
 
 ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hico-gs-max", "hico-gs-attn")
 """The paper's ablation rows (Table 5), baseline first."""
@@ -79,9 +79,9 @@ class BenchConfig(InstantiateConfig):
     def resolved(self) -> BenchConfig:
         """This config with its fields checked and its budgets sorted."""
         config = self
-        unknown = [p for p in config.presets if p not in PRESETS]
+        unknown = [p for p in config.presets if p not in all_presets()]
         if unknown:
-            raise HicoError(f"--presets: unknown {unknown}; expected some of {sorted(PRESETS)}")
+            raise HicoError(f"--presets: unknown {unknown}; expected some of {sorted(all_presets())}")
         if not config.presets or not config.budgets:
             raise HicoError("--presets / --budgets: expected at least one value each")
         if min(config.budgets) < 1:
@@ -110,7 +110,7 @@ the command line is parsed, so every flag the user types overrides it, whatever 
 
 def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int, seed: int) -> HiCoTrainerConfig:
     """The training config of one run of the matrix (output_dir not yet set)."""
-    config = copy.deepcopy(PRESETS[preset][1])
+    config = copy.deepcopy(all_presets()[preset][1])
     data = dataclasses.replace(config.data, downscale=bench.downscale,
                                data=Path(bench.data) if bench.data is not None else None,
                                scene=config.data.scene if bench.data is not None else scene)
