@@ -35,7 +35,10 @@ def mark_pareto(cells: list[dict[str, Any]]) -> None:
 
 
 def build_results(bench: Any, cells: list[dict[str, Any]]) -> dict[str, Any]:
-    cells = sorted(cells, key=lambda c: (c["scene"], c["preset"], c.get("seed", 0), c["budget"]))
+    # Presets in the matrix's order: the first is the baseline the ablation table compares against.
+    order = {preset: i for i, preset in enumerate(getattr(bench, "presets", ()))}
+    cells = sorted(cells, key=lambda c: (c["scene"], order.get(c["preset"], len(order)), c["preset"],
+                                         c.get("seed", 0), c["budget"]))
     mark_pareto(cells)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(bench).items()}
     return {"version": RESULTS_VERSION, "bench": settings, "cells": cells}
