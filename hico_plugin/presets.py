@@ -41,12 +41,13 @@ class HiCoTrainerConfig(TrainerConfig):
 
 
 def _with(config: HiCoTrainerConfig, method_name: str, *, context: str | None = None, dngc: bool | None = None,
-          **trainer_fields: Any) -> HiCoTrainerConfig:
-    """A copy of ``config`` with a method name, a context aggregator kind and DNGC on/off."""
+          parent_rule: str | None = None, **trainer_fields: Any) -> HiCoTrainerConfig:
+    """A copy of ``config`` with a method name, a context aggregator kind / parent rule and DNGC on/off."""
     model = config.model
-    if context is not None:
+    changes = {k: v for k, v in (("kind", context), ("parent_rule", parent_rule)) if v is not None}
+    if changes:
         model = dataclasses.replace(model, field=dataclasses.replace(
-            model.field, context=dataclasses.replace(model.field.context, kind=context)))
+            model.field, context=dataclasses.replace(model.field.context, **changes)))
     if dngc is not None:
         model = dataclasses.replace(model, losses=dataclasses.replace(
             model.losses, dngc=dataclasses.replace(model.losses.dngc, enabled=dngc)))
@@ -76,6 +77,8 @@ PRESETS: dict[str, tuple[str, HiCoTrainerConfig]] = {
     "octree-gs": ("Baseline: octree anchors without CLCA and without DNGC.",
                   _with(_paper(), "octree-gs", context="none", dngc=False)),
     "hico-gs-clca": ("Ablation: CLCA only (no DNGC).", _with(_paper(), "hico-gs-clca", dngc=False)),
+    "hico-gs-clca-paper": ("Ablation: CLCA only, with the paper's literal parent lookup (round, self fallback).",
+                           _with(_paper(), "hico-gs-clca-paper", dngc=False, parent_rule="paper")),
     "hico-gs-dngc": ("Ablation: DNGC only (no CLCA).", _with(_paper(), "hico-gs-dngc", context="none")),
     "hico-gs-max": ("Ablation: CLCA with max pooling instead of the MLP-mean triplet.",
                     _with(_paper(), "hico-gs-max", context="max")),

@@ -52,7 +52,7 @@ def test_quick_matrix_records_every_cell(bench_dir):
 
 def test_report_contents(bench_dir):
     report = (bench_dir / "report.md").read_text()
-    assert "## Ablation" in report and "| method | tiny PSNR | train time (s) | ms / step |" in report
+    assert "## Ablation" in report and "| method | tiny PSNR | Δ vs octree-gs | tiny normal err (°) | train time (s) | ms / step |" in report
     assert "## Accuracy vs time" in report and "★" in report
     assert "## Where a training step's time goes" in report and "| clca |" in report
     assert "CLCA + DNGC (hico-gs)" in report
@@ -130,7 +130,7 @@ def test_report_lists_its_settings(bench_dir):
     report = (bench_dir / "report.md").read_text()
     assert "- presets: octree-gs, hico-gs" in report and "- scenes: tiny" in report
     assert "- budgets: 1, 3 steps (nested schedule)" in report
-    assert "- downscale: 1; LPIPS: none; eval views: at most 1; seed: 42" in report
+    assert "- downscale: 1; LPIPS: none; eval views: at most 1; seeds: 42" in report
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):
@@ -167,3 +167,39 @@ def test_plan_nested_vs_separate(tmp_path):
     # Schedules scale with max_steps, so a budget-2 cell of a 5-step run is a different cell.
     assert separate[0]["cells"][2] != nested[0]["cells"][2]
     assert all(r["todo"] for r in nested + separate)
+
+
+def seeded_cells(psnrs: dict[str, list[float]]) -> list[dict]:
+    return [{"preset": preset, "scene": "tiny", "budget": 10, "seed": seed, "psnr": value,
+             "normal_error_deg": 10.0, "wall_seconds": 1.0, "step_ms": 5.0}
+            for preset, values in psnrs.items() for seed, value in enumerate(values)]
+
+
+def test_seeded_ablation_marks_only_differences_beyond_two_standard_errors():
+    from hico_plugin.bench.report import ablation_table
+    from hico_plugin.bench.seeds import difference
+
+    # +0.40 with SE sqrt(0.08^2/3 + 0.38^2/3) = 0.224 -> 1.8 SE: not significant (the courtyard).
+    diff, se, significant = difference([25.36, 25.44, 25.52], [24.66, 25.04, 25.42])
+    assert diff == pytest.approx(0.40) and se == pytest.approx(0.2242, abs=1e-3) and not significant
+    assert difference([26.0, 26.1, 25.9], [25.0, 25.1, 24.9])[2]  # +1.0 at SE 0.08
+    assert difference([26.0], [25.0]) == (1.0, None, False)  # one seed shows no spread
+    table = ablation_table(seeded_cells({"octree-gs": [25.0, 25.1, 24.9], "hico-gs": [26.0, 26.1, 25.9],
+                                         "hico-gs-clca": [25.0, 25.4, 24.8]}))
+    assert "| hico-gs | 26.00 ± 0.10 | +1.00 ± 0.08 * |" in table
+    assert "| hico-gs-clca | 25.07 ± 0.31 | +0.07 ± 0.19 |" in table
+    assert "| octree-gs | 25.00 ± 0.10 |  |" in table
+
+
+def test_seeds_multiply_the_runs(tmp_path):
+    from hico_plugin.bench.matrix import plan
+
+    config = BENCH_MODES["quick"]
+    one = plan(BenchConfig(**{**config.__dict__, "output_dir": tmp_path, "seeds": (0,)}).resolved())
+    three = plan(BenchConfig(**{**config.__dict__, "output_dir": tmp_path, "seeds": (0, 1, 2, 1)}).resolved())
+    assert len(three) == 3 * len(one)
+    assert [r["seed"] for r in three] == [s for s in (0, 1, 2) for _ in one]  # seed-major, duplicates dropped
+    assert len({r["run_dir"] for r in three}) == len(three) and {r["config"].seed for r in three} == {0, 1, 2}
+    assert bench_cli.parse(["--seeds", "0", "1", "2"]).seeds == (0, 1, 2)
+    with pytest.raises(HicoError, match="--seeds"):
+        BenchConfig(seeds=()).resolved()

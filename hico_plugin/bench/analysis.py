@@ -91,22 +91,26 @@ def _nan_to_none(values: Any) -> Any:
 
 
 def run_features(run_dir: Path) -> dict[str, Any]:
-    """Anchor features of a trained run: {"method", "f", "f_hat" (None without CLCA), "levels", "num_levels"}."""
+    """Anchor features of a trained run: {"method", "f", "f_hat" (None without CLCA), "levels", "num_levels",
+    "lookup" (the per-level CLCA lookup table over the test views, field/lookup_stats.py)}."""
     from hico_plugin.engine.loading import load_run
+    from hico_plugin.field.lookup_stats import lookup_table
 
     config_path = run_dir / "config.yml"
     if not config_path.is_file():
         raise HicoError(f"{run_dir}: not a training run (expected {config_path})")
     run = load_run(config_path, device="cpu")
-    config, model = run.config, run.model
+    config, model, dataset = run.config, run.model, run.dataset
     field = model.field
     with torch.no_grad():
         features = field.anchor_features.detach().float()
         levels = field.levels.detach()
         has_context = any(True for _ in field.context.parameters()) or field.config.context.kind != "none"
         f_hat = field.context(features, levels, field.anchors.detach(), field.grid).float() if has_context else None
+    views = dataset.test_indices.tolist() or dataset.train_indices.tolist()
+    lookup = lookup_table(field, [dataset.cameras[i] for i in views])
     return {"method": config.method_name, "f": features, "f_hat": f_hat, "levels": levels,
-            "num_levels": int(field.grid.num_levels)}
+            "num_levels": int(field.grid.num_levels), "lookup": lookup}
 
 
 def analyze_features(features: Tensor, levels: Tensor, num_levels: int, f_hat: Tensor | None = None,

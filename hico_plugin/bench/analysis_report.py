@@ -111,7 +111,8 @@ def analyze_run(run_dir: str | Path, out_dir: str | Path, per_level: int = 3000,
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     loaded = run_features(run_dir)
     numbers = analyze_features(loaded["f"], loaded["levels"], loaded["num_levels"], loaded["f_hat"], per_level, seed)
-    document = {"run": str(run_dir), "method": loaded["method"], **_public(numbers), "figures": []}
+    document = {"run": str(run_dir), "method": loaded["method"], **_public(numbers), "lookup": loaded["lookup"],
+                "figures": []}
     plt = _pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     if plt is None:

@@ -61,8 +61,10 @@ class BenchConfig(InstantiateConfig):
     schedule: Literal["nested", "separate"] = "nested"
     """nested: one run per (preset, scene) to the largest budget, evaluated at each budget (its
     schedules scaled to the largest budget); separate: one run per budget with its own schedule."""
-    seed: int = 42
-    """Seed of every run (the same for all cells, so presets see the same view order)."""
+    seeds: tuple[int, ...] = (42,)
+    """Seeds: every cell is run once per seed (the same seeds for all presets, so they see the same view
+    orders); the report gives mean +- std over seeds and marks a difference to the first preset as
+    significant only beyond two standard errors."""
     downscale: int = 2
     """Image downscale factor of the training data."""
     max_eval_views: int = 8
@@ -88,7 +90,10 @@ class BenchConfig(InstantiateConfig):
             raise HicoError(f"--data {config.data}: not a directory (expected a COLMAP dataset)")
         if config.max_eval_views < 1 or config.downscale < 1:
             raise HicoError("--max-eval-views / --downscale: expected >= 1")
-        return dataclasses.replace(config, budgets=tuple(sorted(set(config.budgets))))
+        if not config.seeds:
+            raise HicoError("--seeds: expected at least one seed")
+        return dataclasses.replace(config, budgets=tuple(sorted(set(config.budgets))),
+                                   seeds=tuple(dict.fromkeys(config.seeds)))
 
     def scene_names(self) -> tuple[str, ...]:
         return (Path(self.data).name,) if self.data is not None else tuple(self.scenes)
@@ -103,14 +108,14 @@ BENCH_MODES: dict[str, BenchConfig] = {
 the command line is parsed, so every flag the user types overrides it, whatever its value."""
 
 
-def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int) -> HiCoTrainerConfig:
+def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int, seed: int) -> HiCoTrainerConfig:
     """The training config of one run of the matrix (output_dir not yet set)."""
     config = copy.deepcopy(all_presets()[preset][1])
     data = dataclasses.replace(config.data, downscale=bench.downscale,
                                data=Path(bench.data) if bench.data is not None else None,
                                scene=config.data.scene if bench.data is not None else scene)
     model = dataclasses.replace(config.model, eval_lpips=bench.lpips)
-    return dataclasses.replace(config, data=data, model=model, max_steps=max_steps, seed=bench.seed,
+    return dataclasses.replace(config, data=data, model=model, max_steps=max_steps, seed=seed,
                                experiment_name=scene, eval_every=0, save_every=0, keep_checkpoints=1,
                                vis="none", progress="none", overwrite=True, resume=False, device=bench.device,
                                output_dir=Path("."))
@@ -122,8 +127,8 @@ def config_hash(config: HiCoTrainerConfig, bench: BenchConfig) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
-def cell_path(bench: BenchConfig, preset: str, scene: str, budget: int, digest: str) -> Path:
-    return Path(bench.output_dir) / "cells" / f"{preset}__{scene}__b{budget}__s{bench.seed}__{digest}.json"
+def cell_path(bench: BenchConfig, preset: str, scene: str, budget: int, digest: str, seed: int) -> Path:
+    return Path(bench.output_dir) / "cells" / f"{preset}__{scene}__b{budget}__s{seed}__{digest}.json"
 
 
 def eval_indices(test_indices: list[int], limit: int) -> list[int]:
@@ -183,18 +188,19 @@ def plan(bench: BenchConfig) -> list[dict[str, Any]]:
     """The runs the matrix needs: each {preset, scene, max_steps, budgets, hash, cells{budget: path},
     run_dir, config}, with ``todo`` False when every one of its cells is cached."""
     runs = []
-    for scene in bench.scene_names():
-        for preset in bench.presets:
-            groups = [bench.budgets] if bench.schedule == "nested" else [(b,) for b in bench.budgets]
-            for budgets in groups:
-                config = run_config(bench, preset, scene, max(budgets))
-                digest = config_hash(config, bench)
-                cells = {b: cell_path(bench, preset, scene, b, digest) for b in budgets}
-                run_dir = Path(bench.output_dir) / "runs" / scene / f"{preset}-s{bench.seed}-{digest}"
-                runs.append({"preset": preset, "scene": scene, "max_steps": max(budgets), "hash": digest,
-                             "cells": cells, "run_dir": run_dir,
-                             "config": dataclasses.replace(config, output_dir=run_dir),
-                             "todo": not all(p.is_file() for p in cells.values())})
+    groups = [bench.budgets] if bench.schedule == "nested" else [(b,) for b in bench.budgets]
+    for seed in bench.seeds:  # seed-major: a matrix stopped early has whole seeds done
+        for scene in bench.scene_names():
+            for preset in bench.presets:
+                for budgets in groups:
+                    config = run_config(bench, preset, scene, max(budgets), seed)
+                    digest = config_hash(config, bench)
+                    cells = {b: cell_path(bench, preset, scene, b, digest, seed) for b in budgets}
+                    run_dir = Path(bench.output_dir) / "runs" / scene / f"{preset}-s{seed}-{digest}"
+                    runs.append({"preset": preset, "scene": scene, "seed": seed, "max_steps": max(budgets),
+                                 "hash": digest, "cells": cells, "run_dir": run_dir,
+                                 "config": dataclasses.replace(config, output_dir=run_dir),
+                                 "todo": not all(p.is_file() for p in cells.values())})
     return runs
 
 
@@ -204,11 +210,11 @@ def run_matrix(bench: BenchConfig, log: Callable[[str], None] = print) -> list[d
     todo = [r for r in runs if r["todo"]]
     log(f"hico-bench: {len(runs)} runs, {len(runs) - len(todo)} cached, {len(todo)} to train")
     for number, run in enumerate(todo, 1):
-        log(f"[{number}/{len(todo)}] {run['preset']} on {run['scene']}, {run['max_steps']} steps")
+        log(f"[{number}/{len(todo)}] {run['preset']} on {run['scene']}, {run['max_steps']} steps, seed {run['seed']}")
         start = time.perf_counter()
         config = run["config"]
         timer = StageTimer()
-        base = {"preset": run["preset"], "scene": run["scene"], "seed": bench.seed, "config_hash": run["hash"],
+        base = {"preset": run["preset"], "scene": run["scene"], "seed": run["seed"], "config_hash": run["hash"],
                 "schedule": bench.schedule, "max_steps": run["max_steps"], "run_dir": str(run["run_dir"])}
         recorder = CheckpointRecorder(timer, run["cells"], base, bench.max_eval_views, log)
         trainer = config.setup(callbacks=[recorder])

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from hico_plugin.bench.seeds import format_difference, format_mean_std, values_of
 from hico_plugin.bench.timing import STAGES
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
@@ -34,7 +35,10 @@ def mark_pareto(cells: list[dict[str, Any]]) -> None:
 
 
 def build_results(bench: Any, cells: list[dict[str, Any]]) -> dict[str, Any]:
-    cells = sorted(cells, key=lambda c: (c["scene"], c["preset"], c["budget"]))
+    # Presets in the matrix's order: the first is the baseline the ablation table compares against.
+    order = {preset: i for i, preset in enumerate(getattr(bench, "presets", ()))}
+    cells = sorted(cells, key=lambda c: (c["scene"], order.get(c["preset"], len(order)), c["preset"],
+                                         c.get("seed", 0), c["budget"]))
     mark_pareto(cells)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(bench).items()}
     return {"version": RESULTS_VERSION, "bench": settings, "cells": cells}
@@ -71,33 +75,44 @@ def _presets(cells: list[dict[str, Any]]) -> list[str]:
 
 
 def _final(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each (preset, scene)'s cell at the largest budget."""
-    best: dict[tuple[str, str], dict[str, Any]] = {}
+    """Each (preset, scene, seed)'s cell at the largest budget."""
+    best: dict[tuple[str, str, Any], dict[str, Any]] = {}
     for cell in cells:
-        key = (cell["preset"], cell["scene"])
+        key = (cell["preset"], cell["scene"], cell.get("seed"))
         if key not in best or cell["budget"] > best[key]["budget"]:
             best[key] = cell
     return list(best.values())
 
 
 def ablation_table(cells: list[dict[str, Any]]) -> str:
-    """Paper shape: one row per preset, PSNR per scene at the largest budget, mean wall time."""
+    """Paper shape: one row per preset, PSNR (and normal error) per scene at the largest budget as
+    mean ± std over seeds, the difference to the first preset ± its standard error (* = beyond two
+    standard errors), mean wall time and ms / step."""
     final = _final(cells)
     scenes = list(dict.fromkeys(c["scene"] for c in final))
+    presets = _presets(final)
+    group = {(p, s): [c for c in final if c["preset"] == p and c["scene"] == s] for p in presets for s in scenes}
     rows = []
-    for preset in _presets(final):
-        mine = {c["scene"]: c for c in final if c["preset"] == preset}
-        seconds = [c["wall_seconds"] for c in mine.values()]
-        steps = [c["step_ms"] for c in mine.values()]
-        rows.append([preset] + [_fmt(mine[s]["psnr"]) if s in mine else "–" for s in scenes]
-                    + [_fmt(sum(seconds) / len(seconds), 1), _fmt(sum(steps) / len(steps), 0)])
-    return _table(["method"] + [f"{s} PSNR" for s in scenes] + ["train time (s)", "ms / step"], rows)
+    for preset in presets:
+        row = [preset]
+        for scene in scenes:
+            mine, base = group[(preset, scene)], group[(presets[0], scene)]
+            row += [format_mean_std(values_of(mine, "psnr")),
+                    "" if preset == presets[0] else format_difference(values_of(mine, "psnr"), values_of(base, "psnr")),
+                    format_mean_std(values_of(mine, "normal_error_deg"), 1)]
+        mine = [c for c in final if c["preset"] == preset]
+        row += [format_mean_std(values_of(mine, "wall_seconds"), 1), format_mean_std(values_of(mine, "step_ms"), 0)]
+        rows.append(row)
+    header = ["method"]
+    for scene in scenes:
+        header += [f"{scene} PSNR", f"Δ vs {presets[0]}", f"{scene} normal err (°)"]
+    return _table(header + ["train time (s)", "ms / step"], rows)
 
 
 def accuracy_time_table(cells: list[dict[str, Any]]) -> str:
-    header = ["scene", "method", "steps", "PSNR", "SSIM", "LPIPS", "depth AbsRel", "normal err (°)",
+    header = ["scene", "method", "seed", "steps", "PSNR", "SSIM", "LPIPS", "depth AbsRel", "normal err (°)",
               "anchors", "Gaussians", "wall (s)", "FPS", "Pareto"]
-    rows = [[c["scene"], c["preset"], str(c["budget"]), _fmt(c["psnr"]), _fmt(c["ssim"], 3), _fmt(c["lpips"], 3),
+    rows = [[c["scene"], c["preset"], str(c.get("seed", "–")), str(c["budget"]), _fmt(c["psnr"]), _fmt(c["ssim"], 3), _fmt(c["lpips"], 3),
              _fmt(c["depth_abs_rel"], 3), _fmt(c["normal_error_deg"], 1), _fmt(c["num_anchors"], 0),
              _fmt(c["num_gaussians"], 0), _fmt(c["wall_seconds"], 1), _fmt(c["fps"], 1),
              "★" if c.get("pareto") else ""] for c in cells]
@@ -203,14 +218,18 @@ def settings_lines(bench: dict[str, Any]) -> list[str]:
             f"- scenes: {data if data is not None else ', '.join(bench.get('scenes', ()))}",
             f"- budgets: {', '.join(map(str, bench.get('budgets', ())))} steps ({bench.get('schedule')} schedule)",
             f"- downscale: {bench.get('downscale')}; LPIPS: {bench.get('lpips')}; "
-            f"eval views: at most {bench.get('max_eval_views')}; seed: {bench.get('seed')}"]
+            f"eval views: at most {bench.get('max_eval_views')}; "
+            f"seeds: {', '.join(map(str, bench.get('seeds', ())))}"]
 
 
 def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
     cells, bench = results["cells"], results["bench"]
     parts = ["# hico-bench report", "", *settings_lines(bench), "",
              "Wall time is training time only (evaluation excluded).", "",
-             "## Ablation (largest budget)", "", ablation_table(cells), "",
+             "## Ablation (largest budget)", "",
+             ("Mean ± std over seeds; Δ = difference to the first method ± its standard error, "
+              "* = beyond two standard errors (nothing is marked with one seed)."), "",
+             ablation_table(cells), "",
              "## Accuracy vs time", "", "★ = on the (wall time, PSNR) Pareto front of its scene.", "",
              accuracy_time_table(cells), "",
              "## Where a training step's time goes (ms per step, mean over the run)", "",
@@ -243,11 +262,11 @@ def _delta(old: dict[str, Any], new: dict[str, Any], field: str, digits: int) ->
 
 
 def compare_results(a: dict[str, Any], b: dict[str, Any], name_a: str = "A", name_b: str = "B") -> str:
-    """Markdown table of the cells both results hold (matched by preset, scene, budget): B - A."""
-    index_a = {(c["preset"], c["scene"], c["budget"]): c for c in a["cells"]}
+    """Markdown table of the cells both results hold (matched by preset, scene, budget, seed): B - A."""
+    index_a = {(c["preset"], c["scene"], c["budget"], c.get("seed")): c for c in a["cells"]}
     rows = []
     for cell in b["cells"]:
-        key = (cell["preset"], cell["scene"], cell["budget"])
+        key = (cell["preset"], cell["scene"], cell["budget"], cell.get("seed"))
         if key not in index_a:
             continue
         old = index_a[key]
@@ -255,8 +274,8 @@ def compare_results(a: dict[str, Any], b: dict[str, Any], name_a: str = "A", nam
                      _delta(old, cell, "normal_error_deg", 1), _delta(old, cell, "wall_seconds", 1),
                      _delta(old, cell, "step_ms", 0)])
     if not rows:
-        return f"No cell (preset, scene, budget) is in both {name_a} and {name_b}.\n"
-    header = ["method", "scene", "steps", "PSNR", "SSIM", "normal err (°)", "wall (s)", "ms / step"]
+        return f"No cell (preset, scene, budget, seed) is in both {name_a} and {name_b}.\n"
+    header = ["method", "scene", "steps", "seed", "PSNR", "SSIM", "normal err (°)", "wall (s)", "ms / step"]
     only = len(a["cells"]) + len(b["cells"]) - 2 * len(rows)
     return (f"# {name_b} vs {name_a}\n\n" + _table(header, rows)
             + f"\n\n{len(rows)} cells matched; {only} in only one of the two.\n")

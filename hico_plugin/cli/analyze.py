@@ -34,6 +34,7 @@ class AnalyzeArgs:
 
 def analyze(args: AnalyzeArgs) -> None:
     from hico_plugin.bench.analysis_report import analyze_run, compare_runs
+    from hico_plugin.field.lookup_stats import format_table
 
     if not args.runs:
         raise HicoError("hico-analyze: expected at least one training run directory")
@@ -47,6 +48,8 @@ def analyze(args: AnalyzeArgs) -> None:
         if doc["f_hat"] is not None:
             adjacent = ", ".join("–" if v is None else f"{v:.3f}" for v in doc["f_hat"]["adjacent"])
             print(f"  after CLCA (f̂): {adjacent}")
+        print(f"  CLCA lookup per level over the test views ({doc['method']}):")
+        print("    " + format_table(doc["lookup"]).replace("\n", "\n    "))
     if len(documents) > 1:
         compare_runs(documents, args.output_dir)
     print(f"analysis: {args.output_dir}")

@@ -8,7 +8,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import numpy as np
 import torch
@@ -22,6 +22,7 @@ from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.formats.colmap import ColmapFormat
 from hico_plugin.data.formats.transforms import TransformsFormat
 from hico_plugin.data.paths import resolve_inside
+from hico_plugin.data.splits import extrapolation_split, sparse_views
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
@@ -67,6 +68,12 @@ class DataParserConfig(InstantiateConfig):
     """Explicit test image names; when given, they replace --test-every."""
     test_list: Optional[Path] = None
     """A text file of test image names, one a line (replaces --test-every)."""
+    split: Literal["interleaved", "extrapolate"] = "interleaved"
+    """interleaved: --test-every / --test-names; extrapolate: the 1/test-every views at one end of the
+    cameras' principal axis, with a gap of unused views so that every test camera is farther from the
+    training cameras than any training camera from its neighbour (data/splits.py)."""
+    train_every: int = 1
+    """Sparse views: train on every Nth training view only (e.g. 4)."""
     masks: bool = True
     """Use the format's masks, or DIR/masks/<name>.png (white = keep) when it exists."""
     normalize: bool = True
@@ -106,6 +113,13 @@ class DataParserConfig(InstantiateConfig):
         downscale = self.downscale or self._auto_downscale(record)
         image_paths = [self._downscaled_path(path, downscale) for path in record.image_paths]
         train_indices, test_indices = self._split(record.names)
+        if self.split == "extrapolate":
+            rotations, translations = record.viewmats[:, :3, :3], record.viewmats[:, :3, 3:]
+            centres = -(np.transpose(rotations, (0, 2, 1)) @ translations)[..., 0]
+            train_indices, test_indices = extrapolation_split(centres, self.test_every)
+        elif self.split != "interleaved":
+            raise HicoError(f"--split: expected interleaved or extrapolate, got '{self.split}'")
+        train_indices = sparse_views(train_indices, self.train_every)
 
         sources = {cid: self._camera_source(camera, downscale) for cid, camera in record.cameras.items()}
         for camera_id, source in sources.items():  # the size training sees, after --downscale

@@ -8,7 +8,8 @@ See field.py for the training-side API (param_groups, default_lrs, accumulate_st
 """
 
 from hico_plugin.field.context import (
-    CONTEXT_AGGREGATORS, ContextAggregator, ContextConfig, context_triplet, dense_cell_ids)
+    CONTEXT_AGGREGATORS, ContextAggregator, ContextConfig, ContextLookup, context_lookup, context_triplet,
+    dense_cell_ids, parent_edges)
 from hico_plugin.field.decoder import DecoderConfig, GaussianDecoder, NeuralGaussians
 from hico_plugin.field.densify import DensifyConfig
 from hico_plugin.field.field import ANCHOR_GROUPS, AnchorField, FieldConfig
@@ -16,6 +17,7 @@ from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree
 
 __all__ = [
     "ANCHOR_GROUPS", "AnchorField", "CONTEXT_AGGREGATORS", "ContextAggregator", "ContextConfig",
+    "ContextLookup", "context_lookup", "parent_edges",
     "DecoderConfig", "DensifyConfig", "FieldConfig", "GaussianDecoder", "NeuralGaussians",
     "OctreeBuildConfig", "OctreeGrid", "build_octree", "context_triplet", "dense_cell_ids",
 ]

@@ -342,6 +342,11 @@ class AnchorField(nn.Module):
         """Anchors per level: [L] long."""
         return torch.bincount(self.levels, minlength=self.grid.num_levels)
 
+    @torch.no_grad()
+    def parent_found(self) -> Tensor:
+        """[N] bool: CLCA's lookup finds a parent context, every anchor counted as visible (overlay)."""
+        return self.context.lookup(self.anchor_features, self.levels, self.anchors.detach(), self.grid).parent_found
+
     def anchor_points(self) -> tuple[Tensor, Tensor]:
         """(positions [N,3], levels [N]) of all anchors, detached (viewer, export)."""
         return self.anchors.detach(), self.levels

@@ -29,6 +29,7 @@ from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainBatch
 from hico_plugin.errors import HicoError
 from hico_plugin.field.decoder import NeuralGaussians
 from hico_plugin.field.field import FieldConfig
+from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_sums
 from hico_plugin.losses import LossesConfig
 from hico_plugin.losses.dngc import warmup_weight
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
@@ -154,6 +155,10 @@ class HiCoModel(nn.Module):
     def viewer_anchors(self) -> tuple[Tensor, Tensor]:
         return self.field.anchor_points()
 
+    def viewer_parent_found(self) -> Tensor:
+        """[A] bool aligned with viewer_anchors: the "CLCA parent found" overlay."""
+        return self.field.parent_found()
+
     # ----- TrainableModel --------------------------------------------------------------------------
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
@@ -231,6 +236,8 @@ class HiCoModel(nn.Module):
             err = _or_none(lambda: normal_angular_error(out.normal, gt["normal"].to(rgb)))
             results["normal_error_deg"] = None if err is None else err.mean_deg
             results["normal_error_median_deg"] = None if err is None else err.median_deg
+        # How CLCA's lookup fares on this view, per level (issue 19); averaged over views by evaluate().
+        results.update(flat_metrics(summarise(view_lookup_sums(self.field, camera))))
         results["images"] = {"rgb": rgb, "gt": image}
         return results
 

@@ -10,6 +10,7 @@ Two protocols make the boundary:
         # honouring options.level_range, options.distance_scale and options.clca_enabled; called
         # under torch.no_grad() with the render lock held.
     viewer_anchors() -> tuple[Tensor, Tensor]   # positions [A, 3], levels [A] (int)
+    viewer_parent_found() -> Tensor             # optional: [A] bool, CLCA found a parent (overlay)
 
 ``ViewerState`` — everything else the viewer shows or controls (``RunViewerState`` implements it for
 a model + dataset, with or without a Trainer).
@@ -231,6 +232,11 @@ class RunViewerState:
     def anchors(self) -> tuple[Tensor, Tensor]:
         positions, levels = self.model.viewer_anchors()
         return positions.detach().float().cpu().clone(), levels.detach().cpu().long().clone()
+
+    def anchor_parent_found(self) -> Tensor | None:
+        """[A] bool, aligned with ``anchors()``: CLCA found a parent context (None: the model has no CLCA)."""
+        read = getattr(self.model, "viewer_parent_found", None)
+        return read().detach().cpu().clone() if callable(read) else None
 
     def stats(self) -> dict[str, Any]:
         model_stats = getattr(self.model, "stats", None)

@@ -22,6 +22,7 @@ import viser
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer.conversions import camera_to_viser, render_size, viser_to_camera
+from hico_plugin.viewer.lookup_overlay import parent_found_colors, read_parent_found
 from hico_plugin.viewer.options import COLORMAP_NAMES, OUTPUT_NAMES, RenderOptions
 from hico_plugin.viewer.state import (
     RenderFn,
@@ -134,6 +135,7 @@ class Viewer:
         self._refresh_resolution = config.max_resolution
         self._anchor_positions = np.zeros((0, 3), np.float32)
         self._anchor_levels = np.zeros((0,), np.int64)
+        self._parent_found: np.ndarray | None = None
         self._anchors_per_level = np.zeros((0,), np.int64)
         self._num_levels = 1
         self._anchors_dirty = True
@@ -216,6 +218,9 @@ class Viewer:
             self._show_cameras = gui.add_checkbox("Training cameras", initial_value=True)
             self._show_anchors = gui.add_checkbox("Anchors", initial_value=True)
             self._anchor_level_filter = gui.add_multi_slider("Anchor levels", min=0, max=1, step=1, initial_value=(0, 1))
+            self._parent_overlay = gui.add_checkbox(
+                "CLCA parent found", initial_value=False,
+                hint="Colour anchors green / red by whether CLCA finds a parent context (grey: level 0)")
         with gui.add_folder("Training"):
             self._pause = gui.add_button("Pause training", disabled=not self.state.is_training)
             self._checkpoint = gui.add_button("Save checkpoint", disabled=not self.state.is_training)
@@ -226,7 +231,7 @@ class Viewer:
                        self._distance_scale, self._clca):
             handle.on_update(lambda _: self._invalidate_views())
         self._show_cameras.on_update(lambda _: self._set_cameras_visible())
-        for handle in (self._show_anchors, self._anchor_level_filter):
+        for handle in (self._show_anchors, self._anchor_level_filter, self._parent_overlay):
             handle.on_update(lambda _: self._mark_anchors_dirty())
         self._pause.on_click(lambda _: self._toggle_pause())
         self._checkpoint.on_click(lambda event: self._request_checkpoint(event.client))
@@ -329,6 +334,7 @@ class Viewer:
         """Read the anchors from the model (under the render lock) and rebuild the level sliders."""
         with self.state.render_lock:
             positions, levels = self.state.anchors()
+            self._parent_found = read_parent_found(self.state)
         self._anchor_positions = positions.detach().cpu().float().numpy().reshape(-1, 3)
         self._anchor_levels = levels.detach().cpu().long().numpy().reshape(-1)
         num_levels = int(self._anchor_levels.max()) + 1 if len(self._anchor_levels) else 1
@@ -348,6 +354,8 @@ class Viewer:
         shown = shown[evenly_spaced(len(shown), self.config.max_anchor_points)]
         points = self._anchor_positions[shown]
         colors = level_colors(self._anchor_levels[shown], self._num_levels)
+        if self._parent_overlay.value and self._parent_found is not None:
+            colors = parent_found_colors(self._parent_found[shown], self._anchor_levels[shown])
         if len(points) == 0:  # viser wants at least one point; an empty filter hides the cloud instead
             points, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
         self._anchor_cloud = self.server.scene.add_point_cloud(
