@@ -97,7 +97,7 @@ class EffectsReport:
     per_image: list[dict[str, Any]]
 
     def lines(self) -> list[str]:
-        return [f"{name:<11}{'yes' if f.present else 'no '} — {f.reason}" for name, f in self.effects.items()]
+        return [f"{name:<15}{'yes' if f.present else 'no '} — {f.reason}" for name, f in self.effects.items()]
 
     def to_json(self) -> dict[str, Any]:
         return {"effects": {name: asdict(f) for name, f in self.effects.items()}, "per_image": self.per_image}

@@ -14,6 +14,7 @@ the step just run. The model's schedules use the same optimizer-step counter.
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 import signal
 import sys
@@ -37,7 +38,7 @@ from hico_plugin.engine.checkpoints import (
     seed_everything,
     set_rng_state,
 )
-from hico_plugin.engine.config_io import load_config, save_config
+from hico_plugin.engine.config_io import load_config, save_config, write_text_atomic
 from hico_plugin.engine.data import batch_positions, make_batch, rank_slice
 from hico_plugin.engine.evaluation import evaluate, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers
@@ -251,6 +252,9 @@ class Trainer:
             self.optimizers = self._make_optimizers()
         if self.is_main:  # resume / overwrite are one-off actions, not properties of the run
             save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml")
+            # what the model derived from the data (e.g. effects.json), kept beside the config
+            for name, document in getattr(self.model, "run_documents", dict)().items():
+                write_text_atomic(self.run_dir / name, json.dumps(document, indent=2) + "\n")
 
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))

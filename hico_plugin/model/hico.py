@@ -257,6 +257,18 @@ class HiCoModel(nn.Module):
         results["images"] = {"rgb": rgb, "gt": image}
         return results
 
+    def run_documents(self) -> dict[str, Any]:
+        """Files the trainer writes into the run dir: the dataset's effects analysis and the choices."""
+        document = {"choices": {name: {"on": c.on, "reason": c.reason} for name, c in self.effect_choices.items()}}
+        if self.effects_report is not None:
+            document["analysis"] = self.effects_report.to_json()
+        return {"effects.json": document}
+
+    def eval_documents(self) -> dict[str, Any]:
+        """Non-metric entries of eval.json: which effects were simulated, and why."""
+        return {"effects": {name: {"on": c.on, "reason": c.reason} for name, c in self.effect_choices.items()},
+                "headline_psnr": "psnr (raw); psnr_cc = per-view affine colour fit, psnr_nerfw = fit left half, score right"}
+
     def dngc_weight(self, step: int) -> float:
         cfg = self.dngc_config
         return warmup_weight(step, cfg.start_step, cfg.warmup_steps) if cfg.enabled else 0.0
