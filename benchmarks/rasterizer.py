@@ -43,10 +43,10 @@ def run_case(n: int, size: int, outputs: tuple[str, ...], reps: int, use_compile
     import torch
 
     from hico_plugin.rasterizer import rasterize
-    from hico_plugin.rasterizer.renderer import default_tile_size
+    from hico_plugin.rasterizer.torch_backend import TorchBackend
 
     params, viewmat, K = scene(n, size)
-    tile_size = tile_size or default_tile_size("torch", compositor, params[0].device)
+    tile_size = tile_size or TorchBackend(compositor=compositor).default_tile_size(params[0].device)
 
     def forward(grad: bool):
         leaves = [p.detach().requires_grad_(grad) for p in params]

@@ -17,6 +17,7 @@ import tyro
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.engine.trainer import TrainerConfig
 from hico_plugin.model.hico import HiCoModelConfig
+from hico_plugin.registry import load_plugins
 from hico_plugin.viewer.viewer import ViewerConfig
 
 
@@ -81,7 +82,23 @@ PRESETS: dict[str, tuple[str, HiCoTrainerConfig]] = {
     "hico-gs-attn": ("Ablation: CLCA with attention over the triplet.",
                      _with(_paper(), "hico-gs-attn", context="attention")),
 }
-"""Preset name -> (description, config)."""
+"""Preset name -> (description, config); plug-ins add theirs with ``register_preset``."""
+
+_BUILT_IN = tuple(PRESETS)
+
+
+def register_preset(name: str, description: str, config: HiCoTrainerConfig) -> None:
+    """Make ``config`` trainable as ``hico-train NAME`` and listed by ``hico-train --help``; called by a
+    plug-in module named in the ``hico_plugin.components`` entry-point group."""
+    if name in PRESETS and PRESETS[name][1] is not config:
+        raise ValueError(f"preset '{name}' is already registered")
+    PRESETS[name] = (description, config)
+
+
+def all_presets() -> dict[str, tuple[str, HiCoTrainerConfig]]:
+    """The built-in presets and those of every installed plug-in."""
+    load_plugins()
+    return PRESETS
 
 
 def write_preset_files(directory: str) -> None:
@@ -92,6 +109,7 @@ def write_preset_files(directory: str) -> None:
 
     from hico_plugin.engine.config_io import save_config
 
-    for name, (_, config) in PRESETS.items():
+    for name in _BUILT_IN:
+        config = PRESETS[name][1]
         save_config(config, Path(directory) / f"{name}.yml")
 

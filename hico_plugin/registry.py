@@ -11,15 +11,45 @@ a new implementation without editing this package::
     class MeanContext(nn.Module): ...
 
     CONTEXT_AGGREGATORS.get("mean")  # -> MeanContext
+
+Packages outside this one plug in through the entry-point group ``hico_plugin.components`` (the way
+nerfstudio finds ``nerfstudio.method_configs``): each entry point names a module whose import
+registers that package's components and presets (``hico_plugin.presets.register_preset``). They are
+imported the first time any registry is read (``load_plugins``); see ``tests/plugin_example/``.
 """
 
 from __future__ import annotations
 
+import importlib.metadata
+import warnings
 from typing import Callable, Generic, TypeVar
 
 from hico_plugin.errors import HicoError
 
 T = TypeVar("T")
+
+PLUGIN_GROUP = "hico_plugin.components"
+_plugins_loaded = False
+
+
+def load_plugins() -> None:
+    """Import every module named by a ``hico_plugin.components`` entry point, once per process.
+
+    A plug-in that fails to import (missing dependency, error in its code, a name clash) is skipped
+    with one warning naming it: someone else's broken package must not stop ``hico-train``.
+    """
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    # Set first: a plug-in's own import reads registries, which must not start a second round.
+    _plugins_loaded = True
+    for entry_point in importlib.metadata.entry_points(group=PLUGIN_GROUP):
+        try:
+            entry_point.load()
+        except Exception as err:  # noqa: BLE001 -- any failure of foreign code is reported, not raised
+            source = entry_point.dist.name if entry_point.dist is not None else "unknown distribution"
+            warnings.warn(f"hico_plugin plug-in '{entry_point.name}' ({entry_point.value}, from {source}) "
+                          f"was not loaded: {type(err).__name__}: {err}", stacklevel=2)
 
 
 class Registry(Generic[T]):
@@ -42,6 +72,7 @@ class Registry(Generic[T]):
 
     def get(self, name: str) -> T:
         """The implementation registered as ``name``, or a HicoError listing the registered names."""
+        load_plugins()
         try:
             return self._entries[name]
         except KeyError:
@@ -50,7 +81,9 @@ class Registry(Generic[T]):
             ) from None
 
     def names(self) -> list[str]:
+        load_plugins()
         return sorted(self._entries)
 
     def __contains__(self, name: object) -> bool:
+        load_plugins()
         return name in self._entries

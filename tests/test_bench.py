@@ -7,6 +7,7 @@ import sys
 import pytest
 
 from hico_plugin.bench import (
+    BENCH_MODES,
     BenchConfig,
     compare_results,
     load_results,
@@ -95,6 +96,41 @@ def test_report_without_matplotlib(bench_dir, tmp_path, monkeypatch):
     write_outputs(BenchConfig(), load_results(bench_dir)["cells"], tmp_path)
     report = (tmp_path / "report.md").read_text()
     assert "tables only" in report and "![" not in report and not list(tmp_path.glob("*.png"))
+
+
+FULL = BenchConfig()
+TYPED_AT_FULL_DEFAULT = {
+    "presets": ["--presets", *FULL.presets],
+    "scenes": ["--scenes", *FULL.scenes],
+    "budgets": ["--budgets", *map(str, FULL.budgets)],
+    "lpips": ["--lpips", FULL.lpips],
+    "downscale": ["--downscale", str(FULL.downscale)],
+    "max_eval_views": ["--max-eval-views", str(FULL.max_eval_views)],
+}
+
+
+@pytest.mark.parametrize("spelling", [["--quick"], ["quick"]])
+@pytest.mark.parametrize("field", sorted(TYPED_AT_FULL_DEFAULT))
+def test_quick_keeps_a_typed_value_equal_to_the_full_default(field, spelling):
+    config = bench_cli.parse([*spelling, *TYPED_AT_FULL_DEFAULT[field]])
+    quick = BENCH_MODES["quick"]
+    assert getattr(config, field) == getattr(FULL, field)
+    assert getattr(quick, field) != getattr(FULL, field)  # otherwise the test could not fail
+    for other in TYPED_AT_FULL_DEFAULT.keys() - {field}:
+        assert getattr(config, other) == getattr(quick, other)
+
+
+def test_mode_alone_gives_its_defaults():
+    assert bench_cli.parse(["--quick"]) == BENCH_MODES["quick"] == bench_cli.parse(["quick"])
+    assert bench_cli.parse([]) == BENCH_MODES["full"] == bench_cli.parse(["full"])
+    assert bench_cli.parse(["--budgets", "5", "--quick"]).budgets == (5,)
+
+
+def test_report_lists_its_settings(bench_dir):
+    report = (bench_dir / "report.md").read_text()
+    assert "- presets: octree-gs, hico-gs" in report and "- scenes: tiny" in report
+    assert "- budgets: 1, 3 steps (nested schedule)" in report
+    assert "- downscale: 1; LPIPS: none; eval views: at most 1; seed: 42" in report
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):

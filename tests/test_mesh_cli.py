@@ -12,8 +12,6 @@ from scipy.spatial import cKDTree
 
 from hico_plugin.cli import evaluate as eval_cli
 from hico_plugin.cli import export as export_cli
-from hico_plugin.cli.train import parse as parse_train
-from hico_plugin.cli.train import train
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.mesh import read_ply
 
@@ -21,14 +19,9 @@ pytestmark = pytest.mark.skipif(importlib.util.find_spec("open3d") is None,
                                 reason="open3d not installed (pip install 'hico_plugin[mesh]')")
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    config = parse_train(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
-                          "--output-dir", str(out), "--model.eval-lpips", "none",
-                          "--model.renderer.no-use-compile"])
-    train(config)
-    return out
+@pytest.fixture
+def run_dir(tiny_run):
+    return tiny_run
 
 
 def test_export_mesh_writes_a_ply_in_the_colmap_frame(run_dir, tmp_path, capsys):

@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from hico_plugin.rasterizer import rasterize
-from hico_plugin.rasterizer.api import rasterize_torch
 
 ALL = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "depth_normal")
 
@@ -215,10 +214,8 @@ def test_gradcheck_every_input_and_output(compositor):
                for n in ALL}
 
     def f(means, quats, scales, opacities, colors, viewmat):
-        out = rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, 10, 9,
-                              outputs=frozenset(ALL), background=None, near=0.01, far=1e10,
-                              tile_size=4, depth_normal_from="plane_depth", use_compile=False,
-                              compositor=compositor)
+        out = rasterize(means, quats, scales, opacities, colors, viewmat, K, 10, 9, outputs=ALL,
+                        tile_size=4, backend="torch", use_compile=False, compositor=compositor)
         # Two random projections per output: every output checked at 14 backward passes.
         return torch.cat([getattr(out, n).reshape(-1) @ weights[n] for n in ALL])
 

@@ -9,6 +9,7 @@ from hico_plugin.cameras import Camera
 from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer import RASTERIZER_BACKENDS, RendererConfig, rasterize
 from hico_plugin.rasterizer import api as api_module
+from hico_plugin.rasterizer import torch_backend as torch_backend_module
 from hico_plugin.rasterizer import composite as composite_module
 
 ALL = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "depth_normal")
@@ -185,7 +186,7 @@ def test_batched_cameras_match_single_and_means2d_grad():
 
 def test_rgb_alone_composites_only_colour_channels(monkeypatch):
     seen = []
-    real = api_module.composite
+    real = torch_backend_module.composite
 
     def spy(means2d, conics, opacities, features, bins, **kw):
         seen.append(features.shape[-1])
@@ -194,7 +195,7 @@ def test_rgb_alone_composites_only_colour_channels(monkeypatch):
     def no_geometry(*args, **kw):
         raise AssertionError("rgb alone must not compute per-Gaussian normals")
 
-    monkeypatch.setattr(api_module, "composite", spy)
+    monkeypatch.setattr(torch_backend_module, "composite", spy)
     params = scene(20)
     colors5 = torch.rand(20, 5)
     monkeypatch.setattr(api_module, "gaussian_normals", no_geometry)
@@ -202,7 +203,7 @@ def test_rgb_alone_composites_only_colour_channels(monkeypatch):
     out = rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, **torch_only)
     assert out.alpha is None and out.depth is None and out.rgb.shape == (24, 32, 5)
     monkeypatch.undo()
-    monkeypatch.setattr(api_module, "composite", spy)
+    monkeypatch.setattr(torch_backend_module, "composite", spy)
     rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=("alpha",), **torch_only)
     rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=("rgb", "depth"), **torch_only)
     rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, outputs=ALL, **torch_only)
@@ -254,7 +255,7 @@ def test_compiled_compositor_matches_eager():
     outs = []
     for use_compile, ps in zip((False, True), leaves):
         out = rasterize(*ps, torch.eye(4), K32, 32, 24, outputs=("rgb", "alpha", "plane_depth"),
-                        use_compile=use_compile, compositor="torch")
+                        use_compile=use_compile, compositor="torch", tile_size=16)
         (out.rgb.square().sum() + out.plane_depth.sum()).backward()
         outs.append(out)
     assert not composite_module.KERNELS.failed

@@ -9,7 +9,8 @@ from hico_plugin.rasterizer import fused as fused_module
 from hico_plugin.rasterizer.composite import composite
 from hico_plugin.rasterizer.fused import bin_gaussians_fused, composite_fused, fused_available
 from hico_plugin.rasterizer.projection import project_gaussians
-from hico_plugin.rasterizer.renderer import default_tile_size
+from hico_plugin.rasterizer.gsplat_backend import GsplatBackend
+from hico_plugin.rasterizer.torch_backend import TorchBackend
 from hico_plugin.rasterizer.tiling import bin_gaussians
 
 K = torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]])
@@ -96,8 +97,8 @@ def test_unbuildable_fused_compositor(monkeypatch):
     """auto falls back to the torch compositor (and its tile size); an explicit 'fused' is one error."""
     monkeypatch.setattr(fused_module, "EXTENSION", fused_module._Extension())
     monkeypatch.setattr(fused_module.EXTENSION, "error", "no C++ compiler")
-    monkeypatch.setattr("hico_plugin.rasterizer.api.EXTENSION", fused_module.EXTENSION)
-    assert default_tile_size("torch", "auto", torch.device("cpu")) == 4
+    monkeypatch.setattr("hico_plugin.rasterizer.torch_backend.EXTENSION", fused_module.EXTENSION)
+    assert TorchBackend(compositor="auto").default_tile_size(torch.device("cpu")) == 4
     means = torch.tensor([[0.0, 0.0, 2.0]])
     args = (means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1), torch.ones(1),
             torch.ones(1, 3), torch.eye(4), K, 64, 48)
@@ -110,9 +111,9 @@ def test_unbuildable_fused_compositor(monkeypatch):
 def test_default_tile_sizes():
     assert fused_available()
     cpu = torch.device("cpu")
-    assert default_tile_size("torch", "auto", cpu) == 16
-    assert default_tile_size("torch", "torch", cpu) == 4
-    assert default_tile_size("gsplat", "auto", cpu) == 16
+    assert TorchBackend(compositor="auto").default_tile_size(cpu) == 16
+    assert TorchBackend(compositor="torch").default_tile_size(cpu) == 4
+    assert GsplatBackend().default_tile_size(cpu) == 16
     assert RendererConfig().compositor == "auto"
 
 

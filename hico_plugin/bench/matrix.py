@@ -34,7 +34,7 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine import TrainerCallback, evaluate
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
-from hico_plugin.presets import PRESETS, HiCoTrainerConfig
+from hico_plugin.presets import HiCoTrainerConfig, all_presets
 
 ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hico-gs-max", "hico-gs-attn")
 """The paper's ablation rows (Table 5), baseline first."""
@@ -69,27 +69,17 @@ class BenchConfig(InstantiateConfig):
     """Evaluate on at most this many test views (evenly spaced over the test split)."""
     lpips: Literal["vgg", "alex", "none"] = "alex"
     """LPIPS backbone at evaluation ("none" skips LPIPS)."""
-    quick: bool = False
-    """Smoke mode: the tiny scene, hico-gs vs octree-gs, budgets 20 and 40, no LPIPS."""
     output_dir: Path = Path("bench_out")
     """Where cells/, runs/, results.json and report.md go."""
     device: str = "auto"
     """Training device (as hico-train --device)."""
 
     def resolved(self) -> BenchConfig:
-        """This config with --quick applied and its fields checked."""
+        """This config with its fields checked and its budgets sorted."""
         config = self
-        if config.quick:  # quick replaces only what the command line left at its default
-            default = BenchConfig()
-            keep = {name: getattr(config, name) for name in ("presets", "scenes", "budgets", "lpips", "downscale",
-                                                             "max_eval_views")
-                    if getattr(config, name) != getattr(default, name)}
-            quick = {"presets": ("octree-gs", "hico-gs"), "scenes": ("tiny",), "budgets": (20, 40),
-                     "lpips": "none", "downscale": 1, "max_eval_views": 2}
-            config = dataclasses.replace(config, **{**quick, **keep})
-        unknown = [p for p in config.presets if p not in PRESETS]
+        unknown = [p for p in config.presets if p not in all_presets()]
         if unknown:
-            raise HicoError(f"--presets: unknown {unknown}; expected some of {sorted(PRESETS)}")
+            raise HicoError(f"--presets: unknown {unknown}; expected some of {sorted(all_presets())}")
         if not config.presets or not config.budgets:
             raise HicoError("--presets / --budgets: expected at least one value each")
         if min(config.budgets) < 1:
@@ -104,9 +94,18 @@ class BenchConfig(InstantiateConfig):
         return (Path(self.data).name,) if self.data is not None else tuple(self.scenes)
 
 
+BENCH_MODES: dict[str, BenchConfig] = {
+    "full": BenchConfig(),
+    "quick": BenchConfig(presets=("octree-gs", "hico-gs"), scenes=("tiny",), budgets=(20, 40), lpips="none",
+                         downscale=1, max_eval_views=2),
+}
+"""The default settings of each mode (``hico-bench full`` / ``hico-bench quick``). A mode is chosen before
+the command line is parsed, so every flag the user types overrides it, whatever its value."""
+
+
 def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int) -> HiCoTrainerConfig:
     """The training config of one run of the matrix (output_dir not yet set)."""
-    config = copy.deepcopy(PRESETS[preset][1])
+    config = copy.deepcopy(all_presets()[preset][1])
     data = dataclasses.replace(config.data, downscale=bench.downscale,
                                data=Path(bench.data) if bench.data is not None else None,
                                scene=config.data.scene if bench.data is not None else scene)

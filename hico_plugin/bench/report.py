@@ -196,12 +196,20 @@ def write_plots(cells: list[dict[str, Any]], out_dir: Path) -> list[str]:
     return names + ["stage_breakdown.png"]
 
 
+def settings_lines(bench: dict[str, Any]) -> list[str]:
+    """The settings the matrix ran with, as a Markdown list, so a report shows what it answers."""
+    data = bench.get("data")
+    return [f"- presets: {', '.join(bench.get('presets', ()))}",
+            f"- scenes: {data if data is not None else ', '.join(bench.get('scenes', ()))}",
+            f"- budgets: {', '.join(map(str, bench.get('budgets', ())))} steps ({bench.get('schedule')} schedule)",
+            f"- downscale: {bench.get('downscale')}; LPIPS: {bench.get('lpips')}; "
+            f"eval views: at most {bench.get('max_eval_views')}; seed: {bench.get('seed')}"]
+
+
 def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
     cells, bench = results["cells"], results["bench"]
-    parts = ["# hico-bench report", "",
-             (f"Presets {', '.join(_presets(cells))}; budgets {bench.get('budgets')} steps "
-              f"({bench.get('schedule')} schedule), seed {bench.get('seed')}, downscale {bench.get('downscale')}. "
-              "Wall time is training time only (evaluation excluded)."), "",
+    parts = ["# hico-bench report", "", *settings_lines(bench), "",
+             "Wall time is training time only (evaluation excluded).", "",
              "## Ablation (largest budget)", "", ablation_table(cells), "",
              "## Accuracy vs time", "", "★ = on the (wall time, PSNR) Pareto front of its scene.", "",
              accuracy_time_table(cells), "",

@@ -14,7 +14,7 @@ from typing import Sequence
 import tyro
 
 from hico_plugin.cli import run_cli
-from hico_plugin.presets import PRESETS, HiCoTrainerConfig
+from hico_plugin.presets import HiCoTrainerConfig, all_presets
 
 # Options whose value may coincide with a preset name; such a value is not the preset.
 _VALUE_OPTIONS = ("--method-name", "--experiment-name", "--method_name", "--experiment_name")
@@ -22,9 +22,9 @@ _VALUE_OPTIONS = ("--method-name", "--experiment-name", "--method_name", "--expe
 
 def preset_first(args: Sequence[str]) -> list[str]:
     """``args`` with the first preset name moved to the front, so flag order does not matter."""
-    args = list(args)
+    args, presets = list(args), all_presets()
     for i, arg in enumerate(args):
-        if arg in PRESETS and (i == 0 or args[i - 1] not in _VALUE_OPTIONS):
+        if arg in presets and (i == 0 or args[i - 1] not in _VALUE_OPTIONS):
             return [arg] + args[:i] + args[i + 1:]
     return args
 
@@ -32,7 +32,7 @@ def preset_first(args: Sequence[str]) -> list[str]:
 def parse(args: Sequence[str]) -> HiCoTrainerConfig:
     """The training config that ``hico-train args`` describes (defaults for naming filled in)."""
     config = tyro.extras.overridable_config_cli(
-        PRESETS, args=preset_first(args), prog="hico-train",
+        all_presets(), args=preset_first(args), prog="hico-train",
         description="Train HiCo-GS (or one of its ablations) on a COLMAP dataset or a built-in scene.")
     if config.experiment_name == "unnamed":
         config.experiment_name = config.data.data.name if config.data.data is not None else config.data.scene

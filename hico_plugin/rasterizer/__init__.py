@@ -1,4 +1,5 @@
-"""Gaussian rasterization: one functional entry point, a pure-torch tiled backend and a gsplat backend.
+"""Gaussian rasterization: one functional entry point over backends that project and composite (a
+pure-torch tiled one and gsplat's).
 
     from hico_plugin.rasterizer import rasterize
     out = rasterize(means, quats, scales, opacities, colors, viewmat, K, W, H,
@@ -7,19 +8,20 @@
 
 import importlib.util
 
-from hico_plugin.rasterizer.api import rasterize, rasterize_torch
+from hico_plugin.rasterizer.api import rasterize
 from hico_plugin.rasterizer.base import (
-    DEPTH_NORMAL_SOURCES, OUTPUT_NAMES, RASTERIZER_BACKENDS, RenderOutputs)
+    DEPTH_NORMAL_SOURCES, OUTPUT_NAMES, RASTERIZER_BACKENDS, RasterizerBackend, RenderOutputs)
 from hico_plugin.rasterizer.geometry import depth_to_normal, expected_depth, gaussian_normals, plane_depth
 from hico_plugin.rasterizer.projection import Projection, project_gaussians, quat_to_rotmat
 from hico_plugin.rasterizer.renderer import Renderer, RendererConfig
+from hico_plugin.rasterizer.torch_backend import TorchBackend
 
 # The gsplat backend registers itself on import; it imports without gsplat and fails only when used.
 if importlib.util.find_spec("hico_plugin.rasterizer.gsplat_backend") is not None:
     importlib.import_module("hico_plugin.rasterizer.gsplat_backend")
 
 __all__ = [
-    "DEPTH_NORMAL_SOURCES", "OUTPUT_NAMES", "Projection", "RASTERIZER_BACKENDS", "RenderOutputs",
-    "Renderer", "RendererConfig", "depth_to_normal", "expected_depth", "gaussian_normals",
-    "plane_depth", "project_gaussians", "quat_to_rotmat", "rasterize", "rasterize_torch",
+    "DEPTH_NORMAL_SOURCES", "OUTPUT_NAMES", "Projection", "RASTERIZER_BACKENDS", "RasterizerBackend",
+    "RenderOutputs", "Renderer", "RendererConfig", "TorchBackend", "depth_to_normal", "expected_depth", "gaussian_normals",
+    "plane_depth", "project_gaussians", "quat_to_rotmat", "rasterize",
 ]

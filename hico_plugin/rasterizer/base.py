@@ -1,27 +1,34 @@
-"""What every rasterizer backend shares: the output record, the output names and the backend registry.
+"""What every rasterizer backend shares: the output record, the option names and defaults, and the
+backend contract with its registry.
 
-A backend is a function registered in ``RASTERIZER_BACKENDS`` with exactly the signature of
-``hico_plugin.rasterizer.rasterize`` minus ``backend``; ``rasterize`` validates the inputs first::
+``rasterize`` validates the inputs, packs the per-Gaussian channels (colour, camera-space normal,
+plane distance, camera z) and derives the maps (expected depth, plane depth, depth normal); a backend
+only projects and composites. It is a ``RasterizerBackend`` subclass registered in
+``RASTERIZER_BACKENDS`` and built once with the options of the blending kernels::
 
-    backend(means [N,3], quats [N,4], scales [N,3], opacities [N], colors [N,D],
-            viewmat [4,4] | [C,4,4], K [3,3] | [C,3,3], width: int, height: int, *,
-            outputs: frozenset[str], background: Tensor [D] | None, near: float, far: float,
-            tile_size: int, depth_normal_from: str, use_compile: bool, compositor: str
-            ) -> RenderOutputs
+    backend = RASTERIZER_BACKENDS.get("torch")(compositor="auto", use_compile=True)
+    projected = backend.project(means [N,3], quats [N,4], scales [N,3], opacities [N],
+                                viewmats [C,4,4], Ks [C,3,3], width, height, near, far)
+    image [C,H,W,D], alpha [C,H,W,1] = backend.composite(projected, means2d [C,N,2], opacities [N],
+                                                          features [C,N,D], width, height, tile_size)
 
-It returns a RenderOutputs shaped like the cameras it got (leading C only for a [C,4,4] viewmat).
-``means2d`` must be the very tensor the images were computed from, so that ``retain_grad()`` on it
-collects the screen-space gradients used for densification; with a single camera, slice
-``means2d[0]`` first and render from ``means2d[0][None]``.
+``projected`` has at least ``means_cam`` [C,N,3], ``means2d`` [C,N,2], ``depths`` [C,N] (camera z) and
+``radii`` [C,N] (int, 0 = culled); anything else on it is the backend's own. ``composite`` must blend
+from the ``means2d`` it is handed, not ``projected.means2d``: with a single camera ``rasterize`` hands
+out ``projected.means2d[0]`` and renders from ``means2d[0][None]``, so that ``retain_grad()`` on the
+returned ``means2d`` collects the screen-space gradients used for densification. D may be 0 (an
+alpha-only render).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Callable, Optional
+from typing import Any, Optional
 
+import torch
 from torch import Tensor
 
+from hico_plugin.errors import HicoError
 from hico_plugin.registry import Registry
 
 OUTPUT_NAMES = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "depth_normal")
@@ -33,7 +40,41 @@ COMPOSITORS = ("auto", "fused", "torch")
 DEPTH_NORMAL_SOURCES = ("plane_depth", "depth")
 """Which depth map ``depth_normal`` is back-projected from."""
 
-RASTERIZER_BACKENDS: Registry[Callable[..., "RenderOutputs"]] = Registry("rasterizer backend")
+NEAR = 0.01
+"""Default near plane: Gaussians with camera z <= near are culled."""
+FAR = 1e10
+"""Default far plane: Gaussians with camera z >= far are culled."""
+COMPOSITOR = "auto"
+"""Default blending kernel of the torch backend."""
+TILE_SIZE = 16
+"""Tile edge of a backend that does not choose its own (gsplat's CUDA kernels are built around 16)."""
+
+
+class RasterizerBackend:
+    """Projects Gaussians into cameras and alpha-composites per-Gaussian channels (see the module
+    docstring); ``compositor`` and ``use_compile`` choose the torch backend's kernels and are
+    accepted, unused, by backends that bring their own."""
+
+    def __init__(self, *, compositor: str = COMPOSITOR, use_compile: bool = True):
+        if compositor not in COMPOSITORS:
+            raise HicoError(f"compositor must be one of {list(COMPOSITORS)}, got '{compositor}'")
+        self.compositor = compositor
+        self.use_compile = use_compile
+
+    def project(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor,
+                Ks: Tensor, width: int, height: int, near: float, far: float) -> Any:
+        raise NotImplementedError
+
+    def composite(self, projected: Any, means2d: Tensor, opacities: Tensor, features: Tensor, width: int,
+                  height: int, tile_size: int) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError
+
+    def default_tile_size(self, device: torch.device) -> int:
+        """The tile edge used when none is given (tile_size 0)."""
+        return TILE_SIZE
+
+
+RASTERIZER_BACKENDS: Registry[type[RasterizerBackend]] = Registry("rasterizer backend")
 
 
 @dataclass

@@ -1,0 +1,21 @@
+"""Fixtures shared by several test modules."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """The directory of a tiny trained run: hico-gs-lite, built-in `tiny` scene, 2 steps, no viewer.
+
+    Trained once per session (about half the time of the CLI tests). Tests may add files to it and
+    rewrite eval.json (hico-eval does), but must not remove what training wrote."""
+    from hico_plugin.cli.train import parse, train
+
+    out = tmp_path_factory.mktemp("tiny-run")
+    train(parse(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
+                 "--output-dir", str(out), "--model.eval-lpips", "none", "--model.renderer.no-use-compile"]))
+    return out
