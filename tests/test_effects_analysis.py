@@ -82,3 +82,17 @@ def test_effects_spec_parsing():
         parse_effects("fog=on")
     with pytest.raises(HicoError, match="expected 'auto'"):
         parse_effects("sky")
+
+
+def test_bench_effects_axis_plans_one_run_per_effects_value(tmp_path):
+    from hico_plugin.bench.matrix import BENCH_MODES, plan
+
+    import dataclasses
+
+    bench = dataclasses.replace(BENCH_MODES["effects"], output_dir=tmp_path).resolved()
+    runs = plan(bench)
+    assert len(runs) == len(bench.scenes) * len(bench.effects)
+    by_effects = {r["effects"]: r for r in runs if r["scene"] == "tiny"}
+    assert by_effects["auto"]["preset"] == "hico-gs-lite"
+    assert by_effects["sky=on,exposure=off,lod=on"]["config"].model.effects == "sky=on,exposure=off,lod=on"
+    assert len({r["run_dir"] for r in runs}) == len(runs)  # every effects value trains its own run
