@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from hico_plugin.cameras import Cameras
-from hico_plugin.data.parser import ColmapDataParserConfig
+from hico_plugin.data.parser import DataParserConfig
 from hico_plugin.field import ContextConfig, FieldConfig
 from hico_plugin.field.lookup_stats import format_table, lookup_table
 from hico_plugin.scenes.generate import generate_scene
@@ -14,7 +14,7 @@ SMALL = dict(num_views=16, width=64, height=48, pixel_samples=1, sparse_points=1
 
 def scene_field(tmp_path_factory, name: str, rule: str):
     root = generate_scene(name, tmp_path_factory.mktemp(name) / name, **SMALL)
-    data = ColmapDataParserConfig(data=root).parse()
+    data = DataParserConfig(data=root).parse()
     train = data.train_indices
     cameras = data.cameras
     train_cameras = Cameras(cameras.viewmats[train], cameras.Ks[train], cameras.widths[train],

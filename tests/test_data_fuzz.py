@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_data import write_dataset
 
-from hico_plugin.data import ColmapDataParserConfig
+from hico_plugin.data import DataParserConfig
 from hico_plugin.errors import HicoError
 
 FUZZ = settings(max_examples=int(os.environ.get("HICO_FUZZ_EXAMPLES", "200")), deadline=None, derandomize=True,
@@ -35,7 +35,7 @@ def templates(tmp_path_factory):
 def _load_or_one_line(root: Path) -> None:
     """Parse ``root`` and decode every view; only a one-line HicoError may come out."""
     try:
-        dataset = ColmapDataParserConfig(data=root, cache_dir=root / "cache").setup()
+        dataset = DataParserConfig(data=root, cache_dir=root / "cache").setup()
         images = (root / "images").resolve()
         assert all(Path(p).resolve().is_relative_to(images) for p in dataset.image_paths)
         dataset.verify_images()

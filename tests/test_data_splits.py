@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from hico_plugin.data.parser import ColmapDataParserConfig
+from hico_plugin.data.parser import DataParserConfig
 from hico_plugin.data.splits import extrapolation_split, nearest_distances, sparse_views
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes.generate import generate_scene
@@ -37,9 +37,9 @@ def test_sparse_views_and_bad_values():
 def test_parser_options_on_a_built_in_scene(tmp_path):
     root = generate_scene("city-block", tmp_path / "city", num_views=24, width=32, height=24, pixel_samples=1,
                           sparse_points=200)
-    base = ColmapDataParserConfig(data=root).parse()
-    extrapolate = ColmapDataParserConfig(data=root, split="extrapolate").parse()
-    sparse = ColmapDataParserConfig(data=root, train_every=4).parse()
+    base = DataParserConfig(data=root).parse()
+    extrapolate = DataParserConfig(data=root, split="extrapolate").parse()
+    sparse = DataParserConfig(data=root, train_every=4).parse()
     assert sparse.train_indices.tolist() == base.train_indices[::4].tolist()
     assert torch.equal(sparse.test_indices, base.test_indices)
     centres = extrapolate.cameras.centers.numpy()
@@ -47,4 +47,4 @@ def test_parser_options_on_a_built_in_scene(tmp_path):
     assert len(test) == 3
     assert nearest_distances(test, train).min() > nearest_distances(train, train, exclude_self=True).max()
     with pytest.raises(HicoError, match="--split"):
-        ColmapDataParserConfig(data=root, split="random").parse()
+        DataParserConfig(data=root, split="random").parse()

@@ -51,7 +51,8 @@ def test_sky_depends_on_direction_only():
 def test_model_composites_sky_only_where_alpha_leaves_room():
     dataset = DataSourceConfig(scene="tiny").setup()
     camera = dataset.cameras[int(dataset.train_indices[0])].scaled(0.5)
-    with_sky = HiCoModelConfig(renderer=RendererConfig(use_compile=False), eval_lpips="none").setup(dataset=dataset)
+    with_sky = HiCoModelConfig(renderer=RendererConfig(use_compile=False), eval_lpips="none",
+                               effects="auto,sky=on").setup(dataset=dataset)
     with torch.no_grad():
         out, gaussians = with_sky.render(camera, ("rgb",))
         bare = with_sky.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
@@ -61,7 +62,7 @@ def test_model_composites_sky_only_where_alpha_leaves_room():
     assert "sky" in with_sky.param_groups() and "sky" in with_sky.lr_schedules(100)
 
     without = HiCoModelConfig(renderer=RendererConfig(use_compile=False), eval_lpips="none",
-                              sky=SkyConfig(enabled=False), background=(1.0, 0.0, 0.0)).setup(dataset=dataset)
+                              effects="auto,sky=off", background=(1.0, 0.0, 0.0)).setup(dataset=dataset)
     assert without.sky is None and "sky" not in without.param_groups()
     with torch.no_grad():
         out, gaussians = without.render(camera, ("rgb",))

@@ -39,7 +39,7 @@ from hico_plugin.presets import HiCoTrainerConfig, all_presets
 ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hico-gs-max", "hico-gs-attn")
 """The paper's ablation rows (Table 5), baseline first."""
 
-METRIC_KEYS = ("psnr", "ssim", "lpips", "depth_abs_rel", "normal_error_deg", "num_anchors", "num_gaussians", "fps")
+METRIC_KEYS = ("psnr", "psnr_cc", "ssim", "lpips", "depth_abs_rel", "normal_error_deg", "num_anchors", "num_gaussians", "fps")
 """Evaluation figures every cell records (None where unavailable, e.g. no ground-truth normals)."""
 
 
@@ -53,6 +53,9 @@ class BenchConfig(InstantiateConfig):
     """Built-in scenes (ignored when --data is given)."""
     data: Path | None = None
     """A COLMAP dataset directory to benchmark instead of the built-in scenes."""
+    effects: tuple[str, ...] = ("auto",)
+    """The effects axis: each value is one --model.effects setting (e.g. "auto,sky=off"); every
+    preset x scene runs once per value. A value other than "auto" names its rows "PRESET [VALUE]"."""
     budgets: tuple[int, ...] = (100, 200, 400)
     """Training budgets in optimizer steps (checkpoints of one run when schedule is nested). The
     default takes about 10 minutes for the 12 default runs on 2 cores (~0.08-0.12 s per step at
@@ -101,6 +104,10 @@ class BenchConfig(InstantiateConfig):
 
 BENCH_MODES: dict[str, BenchConfig] = {
     "full": BenchConfig(),
+    # each effect on / off on a scene that has sky and exposure (pagoda) and on one with neither (tiny)
+    "effects": BenchConfig(presets=("hico-gs-lite",), scenes=("pagoda", "tiny"), budgets=(200,), lpips="none",
+                           effects=("sky=off,exposure=off,lod=on", "sky=on,exposure=off,lod=on",
+                                    "sky=off,exposure=on,lod=on", "sky=off,exposure=off,lod=off", "auto")),
     "quick": BenchConfig(presets=("octree-gs", "hico-gs"), scenes=("tiny",), budgets=(20, 40), lpips="none",
                          downscale=1, max_eval_views=2),
 }
@@ -108,13 +115,14 @@ BENCH_MODES: dict[str, BenchConfig] = {
 the command line is parsed, so every flag the user types overrides it, whatever its value."""
 
 
-def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int, seed: int) -> HiCoTrainerConfig:
+def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int, seed: int,
+               effects: str = "auto") -> HiCoTrainerConfig:
     """The training config of one run of the matrix (output_dir not yet set)."""
     config = copy.deepcopy(all_presets()[preset][1])
     data = dataclasses.replace(config.data, downscale=bench.downscale,
                                data=Path(bench.data) if bench.data is not None else None,
                                scene=config.data.scene if bench.data is not None else scene)
-    model = dataclasses.replace(config.model, eval_lpips=bench.lpips)
+    model = dataclasses.replace(config.model, eval_lpips=bench.lpips, effects=effects)
     return dataclasses.replace(config, data=data, model=model, max_steps=max_steps, seed=seed,
                                experiment_name=scene, eval_every=0, save_every=0, keep_checkpoints=1,
                                vis="none", progress="none", overwrite=True, resume=False, device=bench.device,
@@ -164,13 +172,16 @@ class CheckpointRecorder(TrainerCallback):
             results = evaluate(trainer.model, trainer.dataset,
                                eval_indices(trainer.test_indices, self.max_eval_views), trainer.device)
         stage_ms = self.timer.mean_ms()
+        model = trainer.model
         record = {**self.base, "budget": budget,
                   "wall_seconds": float(metrics.get("train_seconds", trainer.train_seconds)),
                   **{key: _float(results.get(key)) for key in METRIC_KEYS},
                   "stage_ms": stage_ms, "step_ms": sum(stage_ms.values()),
                   # includes what no stage covers (batch loading, logging, warm-up): compare with step_ms
                   "wall_ms_per_step": 1e3 * float(metrics.get("train_seconds", trainer.train_seconds)) / budget,
-                  "eval_views": int(results.get("num_views", 0))}
+                  "eval_views": int(results.get("num_views", 0)),
+                  "num_params": int(sum(p.numel() for p in model.parameters())),
+                  "effects_on": sorted(n for n, c in getattr(model, "effect_choices", {}).items() if c.on)}
         write_text_atomic(self.cells[budget], json.dumps(record, indent=2, allow_nan=True) + "\n")
         psnr = record["psnr"]
         self.log(f"  {record['preset']} / {record['scene']} @ {budget} steps: PSNR "
@@ -191,14 +202,17 @@ def plan(bench: BenchConfig) -> list[dict[str, Any]]:
     groups = [bench.budgets] if bench.schedule == "nested" else [(b,) for b in bench.budgets]
     for seed in bench.seeds:  # seed-major: a matrix stopped early has whole seeds done
         for scene in bench.scene_names():
-            for preset in bench.presets:
+            for base_preset, effects in ((p, e) for p in bench.presets for e in bench.effects):
+                preset = base_preset if effects == "auto" else f"{base_preset} [{effects}]"
+                file_name = (base_preset if effects == "auto"
+                             else f"{base_preset}-fx{hashlib.sha1(effects.encode()).hexdigest()[:6]}")
                 for budgets in groups:
-                    config = run_config(bench, preset, scene, max(budgets), seed)
+                    config = run_config(bench, base_preset, scene, max(budgets), seed, effects)
                     digest = config_hash(config, bench)
-                    cells = {b: cell_path(bench, preset, scene, b, digest, seed) for b in budgets}
-                    run_dir = Path(bench.output_dir) / "runs" / scene / f"{preset}-s{seed}-{digest}"
-                    runs.append({"preset": preset, "scene": scene, "seed": seed, "max_steps": max(budgets),
-                                 "hash": digest, "cells": cells, "run_dir": run_dir,
+                    cells = {b: cell_path(bench, file_name, scene, b, digest, seed) for b in budgets}
+                    run_dir = Path(bench.output_dir) / "runs" / scene / f"{file_name}-s{seed}-{digest}"
+                    runs.append({"preset": preset, "effects": effects, "scene": scene, "seed": seed,
+                                 "max_steps": max(budgets), "hash": digest, "cells": cells, "run_dir": run_dir,
                                  "config": dataclasses.replace(config, output_dir=run_dir),
                                  "todo": not all(p.is_file() for p in cells.values())})
     return runs
@@ -214,7 +228,8 @@ def run_matrix(bench: BenchConfig, log: Callable[[str], None] = print) -> list[d
         start = time.perf_counter()
         config = run["config"]
         timer = StageTimer()
-        base = {"preset": run["preset"], "scene": run["scene"], "seed": run["seed"], "config_hash": run["hash"],
+        base = {"preset": run["preset"], "effects": run["effects"], "scene": run["scene"], "seed": run["seed"],
+                "config_hash": run["hash"],
                 "schedule": bench.schedule, "max_steps": run["max_steps"], "run_dir": str(run["run_dir"])}
         recorder = CheckpointRecorder(timer, run["cells"], base, bench.max_eval_views, log)
         trainer = config.setup(callbacks=[recorder])

@@ -211,11 +211,22 @@ def write_plots(cells: list[dict[str, Any]], out_dir: Path) -> list[str]:
     return names + ["stage_breakdown.png"]
 
 
+def effects_table(cells: list[dict[str, Any]]) -> str:
+    """One row per (scene, effects setting) at the largest budget: what each effect costs."""
+    rows = [[c["scene"], c.get("effects", "auto"), ", ".join(c.get("effects_on", [])) or "none", str(c["budget"]),
+             _fmt(c["psnr"]), _fmt(c.get("psnr_cc")), _fmt(c["step_ms"], 0), _fmt(c.get("wall_ms_per_step"), 0),
+             str(c.get("num_params", "–"))]
+            for c in sorted(_final(cells), key=lambda c: (c["scene"], c.get("effects", "auto")))]
+    return _table(["scene", "--model.effects", "on", "steps", "PSNR raw", "PSNR colour-corr.", "ms / step",
+                   "wall ms / step", "parameters"], rows)
+
+
 def settings_lines(bench: dict[str, Any]) -> list[str]:
     """The settings the matrix ran with, as a Markdown list, so a report shows what it answers."""
     data = bench.get("data")
     return [f"- presets: {', '.join(bench.get('presets', ()))}",
             f"- scenes: {data if data is not None else ', '.join(bench.get('scenes', ()))}",
+            f"- effects: {', '.join(bench.get('effects', ('auto',)))}",
             f"- budgets: {', '.join(map(str, bench.get('budgets', ())))} steps ({bench.get('schedule')} schedule)",
             f"- downscale: {bench.get('downscale')}; LPIPS: {bench.get('lpips')}; "
             f"eval views: at most {bench.get('max_eval_views')}; "
@@ -237,6 +248,11 @@ def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
               "so the gap to \"total\" is what no stage covers (batch loading, logging, the warm-up step)."), "",
              breakdown_table(cells), "",
              "### What CLCA and DNGC cost", "", *component_costs(cells), ""]
+    if len({c.get("effects", "auto") for c in cells}) > 1:
+        parts += ["## What each effect costs (largest budget)", "",
+                  "PSNR colour-corrected: per test view, a least-squares affine colour fit of the render to the "
+                  "photo before scoring (the test photo's own exposure is unknowable).", "",
+                  effects_table(cells), ""]
     parts += ["## Figures", ""]
     if plots is None or not plots:
         parts.append("matplotlib is not installed (`pip install hico_plugin[bench]`): tables only, no figures.")

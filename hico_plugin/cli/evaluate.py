@@ -91,8 +91,8 @@ def main(args: EvalArgs) -> dict[str, Any]:
     output_path = args.output_path or run.run_dir / "eval.json"
     write_eval_json(output_path, run.config.experiment_name, run.config.method_name, str(run.checkpoint), results)
     for key, value in results.items():
-        if key.endswith("_std") or value is None:
-            continue
+        if key.endswith("_std") or not isinstance(value, (int, float)):
+            continue  # None, and the model's choices (effects), which eval.json holds as they are
         std = results.get(f"{key}_std")
         print(f"{key:26s} {value:.4g}" + (f" ± {std:.3g}" if isinstance(std, float) else ""))
     print(f"eval: {len(indices)} test views of {run.checkpoint} -> {output_path}")

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import tyro
 
 from hico_plugin.cli import run_cli
 from hico_plugin.data import DataParserConfig, Dataset
+from hico_plugin.engine.config_io import write_text_atomic
 
 
 @dataclass
@@ -23,6 +25,11 @@ class InspectConfig(DataParserConfig):
     verify_images: bool = True
     """Decode every image and mask (fills the undistortion cache); --no-verify-images skips it on big
     scenes (headers are still checked against the cameras)."""
+    effects: bool = True
+    """Analyse which image-formation effects the capture has (exposure, sky, noise, distortion,
+    multi-distance, LOD levels): what --model.effects auto would turn on."""
+    effects_json: Optional[Path] = None
+    """Also write the effects analysis (per-image gains included) to this JSON file."""
 
 
 def scene_label(metadata: dict) -> str:
@@ -81,6 +88,15 @@ def main(config: InspectConfig) -> None:
     dataset = config.setup()
     for line in summarize(dataset):
         print(line)
+    if config.effects:
+        from hico_plugin.analysis.effects import analyze_effects
+
+        report = analyze_effects(dataset)
+        for line in report.lines():
+            print(f"effect  {line}")
+        if config.effects_json is not None:
+            write_text_atomic(config.effects_json, json.dumps(report.to_json(), indent=2) + "\n")
+            print(f"effects      written to {config.effects_json}")
     if config.verify_images:
         dataset.verify_images()
         print(f"verified     all {len(dataset)} images decode and match their cameras")

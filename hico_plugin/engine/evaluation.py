@@ -81,6 +81,8 @@ def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], d
     results["num_views"] = len(per_view)
     for key, value in model.stats().items():  # per-view figures from eval_view take precedence
         results.setdefault(key, float(value))
+    # choices the model made from the data (e.g. which effects it simulates), as they are
+    results.update(getattr(model, "eval_documents", dict)())
     return results
 
 

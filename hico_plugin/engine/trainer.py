@@ -18,6 +18,7 @@ the step just run. The model's schedules use the same optimizer-step counter.
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 import sys
 import threading
@@ -41,7 +42,7 @@ from hico_plugin.engine.checkpoints import (
     seed_everything,
     set_rng_state,
 )
-from hico_plugin.engine.config_io import save_config
+from hico_plugin.engine.config_io import save_config, write_text_atomic
 from hico_plugin.engine.controls import TrainerControls
 from hico_plugin.engine.data import batch_positions, make_batch, rank_slice
 from hico_plugin.engine.evaluation import evaluate, write_eval_json
@@ -274,8 +275,11 @@ class Trainer:
             try:
                 save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml",
                             absolute_paths=True)
+                # what the model derived from the data (e.g. effects.json), kept beside the config
+                for name, document in getattr(self.model, "run_documents", dict)().items():
+                    write_text_atomic(self.run_dir / name, json.dumps(document, indent=2) + "\n")
             except OSError as err:
-                raise HicoError(f"{self.run_dir / 'config.yml'}: cannot write ({err.strerror or err})") from None
+                raise HicoError(f"{self.run_dir}: cannot write the run's config ({err.strerror or err})") from None
 
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))

@@ -33,6 +33,10 @@ from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_
 from hico_plugin.losses import LossesConfig
 from hico_plugin.losses.dngc import warmup_weight
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
+from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
+from hico_plugin.model import lod as _lod  # noqa: F401 -- registers the "lod" effect
+from hico_plugin.model.appearance import AffineColour
+from hico_plugin.model.effects import EFFECTS, choose_effects
 from hico_plugin.model.sky import SkyConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
@@ -51,8 +55,12 @@ class HiCoModelConfig(InstantiateConfig):
     """Rasterizer backend and its options."""
     losses: LossesConfig = dataclass_field(default_factory=LossesConfig)
     """Loss components (photometric, DNGC)."""
+    effects: str = "auto"
+    """Image-formation effects to simulate: "auto" turns on exactly those the dataset analysis finds
+    (sky, exposure = per-image colour transform, lod = octree levels from the distance spread);
+    NAME=on|off forces one, e.g. "auto,sky=off" or "sky=on,exposure=off,lod=on"."""
     sky: SkyConfig = dataclass_field(default_factory=SkyConfig)
-    """Learned directional sky composited behind the Gaussians."""
+    """Learned directional sky composited behind the Gaussians (when the sky effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour composited behind the Gaussians when the sky is off."""
     scale_schedules: bool = True
@@ -78,7 +86,12 @@ class HiCoModel(nn.Module):
             raise HicoError("dataset: the training split is empty")
         train_cameras = dataset.cameras
         self.train_slot = {int(i): slot for slot, i in enumerate(train_ids.tolist())}
-        self.field = config.field.setup(points=dataset.points,
+        self.effect_choices, self.effects_report = choose_effects(config.effects, dataset)
+        for choice in self.effect_choices.values():
+            print(f"effect  {choice.line()}")
+        on = {name for name, choice in self.effect_choices.items() if choice.on}
+        field_config = EFFECTS.get("lod").field_config(config.field, "lod" in on)
+        self.field = field_config.setup(points=dataset.points,
                                         train_cameras=_subset(train_cameras, train_ids),
                                         num_train_cameras=len(train_ids), total_steps=total_steps)
         self.renderer = config.renderer.setup()
@@ -91,7 +104,8 @@ class HiCoModel(nn.Module):
         self.losses = losses_config.setup()
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
-        self.sky = config.sky.setup() if config.sky.enabled else None
+        self.sky = config.sky.setup() if "sky" in on else None
+        self.colour = AffineColour(len(train_ids)) if "exposure" in on else None
         self.last_num_gaussians = 0
         self.context_enabled = True  # the viewer's CLCA toggle; training always uses the config
 
@@ -127,6 +141,8 @@ class HiCoModel(nn.Module):
                             background=None if self.sky is not None else self.background)
         if self.sky is not None and out.rgb is not None:
             out.rgb = self.over_sky(out, camera)
+        if self.colour is not None and out.rgb is not None:
+            out.rgb = self.colour(out.rgb, camera.index)  # the photo's exposure (training views only)
         return out, gaussians
 
     def over_sky(self, out: RenderOutputs, camera: Camera) -> Tensor:
@@ -165,12 +181,16 @@ class HiCoModel(nn.Module):
         groups = self.field.param_groups()
         if self.sky is not None:
             groups["sky"] = list(self.sky.parameters())
+        if self.colour is not None:
+            groups["exposure"] = list(self.colour.parameters())
         return groups
 
     def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
         lrs = self.field.default_lrs(self.spatial_lr_scale)
         if self.sky is not None:
             lrs["sky"] = (0.01, 1e-4)  # a small MLP like the colour MLP, a little faster: sky is simple
+        if self.colour is not None:
+            lrs["exposure"] = AffineColour.lr
         return {name: LRSchedule(lr_init, lr_final, max_steps) for name, (lr_init, lr_final) in lrs.items()}
 
     def train_step(self, batch: TrainBatch, step: int) -> StepOutput:
@@ -225,7 +245,10 @@ class HiCoModel(nn.Module):
         out, gaussians = self.render(camera, EVAL_OUTPUTS)
         rgb = out.rgb.clamp(0, 1)
         image = image.to(rgb)
-        results: dict[str, Any] = {"psnr": float(psnr(rgb, image)), "ssim": float(ssim(rgb, image)),
+        # "psnr" (the headline) is raw; the colour-corrected figures discount the test photo's own
+        # exposure, which no model can know (metrics/colour.py).
+        results: dict[str, Any] = {"psnr": float(psnr(rgb, image)), "psnr_cc": float(cc_psnr(rgb, image)),
+                                   "psnr_nerfw": float(nerfw_psnr(rgb, image)), "ssim": float(ssim(rgb, image)),
                                    "render_seconds": render_seconds, "num_gaussians": float(len(gaussians))}
         if self.config.eval_lpips != "none":
             value = lpips(rgb, image, net=self.config.eval_lpips)
@@ -240,6 +263,18 @@ class HiCoModel(nn.Module):
         results.update(flat_metrics(summarise(view_lookup_sums(self.field, camera))))
         results["images"] = {"rgb": rgb, "gt": image}
         return results
+
+    def run_documents(self) -> dict[str, Any]:
+        """Files the trainer writes into the run dir: the dataset's effects analysis and the choices."""
+        document = {"choices": {name: {"on": c.on, "reason": c.reason} for name, c in self.effect_choices.items()}}
+        if self.effects_report is not None:
+            document["analysis"] = self.effects_report.to_json()
+        return {"effects.json": document}
+
+    def eval_documents(self) -> dict[str, Any]:
+        """Non-metric entries of eval.json: which effects were simulated, and why."""
+        return {"effects": {name: {"on": c.on, "reason": c.reason} for name, c in self.effect_choices.items()},
+                "headline_psnr": "psnr (raw); psnr_cc = per-view affine colour fit, psnr_nerfw = fit left half, score right"}
 
     def dngc_weight(self, step: int) -> float:
         cfg = self.dngc_config

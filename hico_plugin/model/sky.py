@@ -15,15 +15,14 @@ from torch import Tensor, nn
 
 from hico_plugin.cameras import Camera
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.model.effects import EFFECTS
 from hico_plugin.rasterizer.geometry import pixel_rays
 
 
 @dataclass
 class SkyConfig(InstantiateConfig):
-    """Directional sky behind the Gaussians."""
+    """Directional sky behind the Gaussians (on when --model.effects finds or forces ``sky``)."""
 
-    enabled: bool = True
-    """Learn a sky colour per ray direction; off = the constant model.background."""
     hidden_dim: int = 32
     """Hidden width of the direction MLP."""
 
@@ -31,8 +30,11 @@ class SkyConfig(InstantiateConfig):
         return SkyModel(self)
 
 
+@EFFECTS.register("sky")
 class SkyModel(nn.Module):
     """Sky colour of each pixel of a camera: [H,W,3] in (0,1)."""
+
+    finding = "sky"
 
     def __init__(self, config: SkyConfig):
         super().__init__()

@@ -1,0 +1,98 @@
+"""The effects analysis against the built-in scenes' declared effects, and its pieces."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from hico_plugin.analysis.effects import analyze_effects, exposure_gains, read_tracks
+from hico_plugin.data import DataParserConfig
+from hico_plugin.errors import HicoError
+from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
+from hico_plugin.model.appearance import AffineColour
+from hico_plugin.model.effects import parse_effects
+from hico_plugin.scenes import SCENES
+from hico_plugin.scenes.generate import generate_scene
+
+SMALL = dict(num_views=16, width=96, height=72, pixel_samples=1)
+# effect declared by a scene -> the analysis finding that must agree with it. Sensor noise is left
+# out: the noise estimate needs flat unclipped regions and reads texture as noise without a sky.
+FINDING = {"exposure": "exposure", "sky": "sky", "multi_distance": "multi_distance"}
+
+
+def _combinations():
+    for name in SCENES.names():
+        declared = SCENES.get(name)().effects.declared()
+        for values in itertools.product([True, False], repeat=len(declared)):
+            yield name, dict(zip(declared, values))
+
+
+def _load(name, effects):
+    path = generate_scene(name, **SMALL, effects=effects)
+    return path, DataParserConfig(data=path).setup()
+
+
+@pytest.mark.parametrize("name,effects", list(_combinations()),
+                         ids=lambda v: v if isinstance(v, str) else "-".join(k for k, on in v.items() if on) or "none")
+def test_detector_agrees_with_declared_effects(name, effects):
+    _, dataset = _load(name, effects)
+    report = analyze_effects(dataset)
+    for effect, finding in FINDING.items():  # undeclared effects are absent from the scene
+        assert report.present(finding) == effects.get(effect, False), (effect, report.effects[finding].reason)
+
+
+def test_exposure_gains_match_the_generator():
+    path, dataset = _load("pagoda", {"exposure": True, "sky": True, "sensor_noise": False})
+    true = np.log2(np.array(json.loads((path / "scene.json").read_text())["exposure_gains"]))  # [C,3]
+    gains, per_image = exposure_gains(dataset, read_tracks(dataset))
+    assert read_tracks(dataset).source == "colmap tracks"
+    true -= true.mean(axis=0)  # the analysis fixes the mean gain at 0
+    error = np.abs(gains - true)  # stops, per channel
+    assert error.max() < 0.1 and np.median(error) < 0.04
+    assert per_image[0]["image"] == dataset.image_names[0]
+
+
+def test_cc_psnr_discounts_an_affine_colour_change_and_nerfw_scores_the_other_half():
+    torch.manual_seed(0)
+    render = torch.rand(24, 32, 3) * 0.8
+    photo = (render @ torch.tensor([[1.2, 0.05, 0.0], [0.0, 0.9, 0.0], [0.0, 0.0, 1.1]]).T + 0.03).clamp(0, 1)
+    assert float(cc_psnr(render, photo)) > 60
+    assert float(nerfw_psnr(render, photo)) > 60
+    noisy = (photo + 0.05 * torch.randn_like(photo)).clamp(0, 1)
+    assert float(nerfw_psnr(render, noisy)) < float(cc_psnr(render, noisy)) + 0.5
+
+
+def test_affine_colour_is_identity_for_views_without_a_training_slot():
+    colour = AffineColour(3)
+    rgb = torch.rand(4, 5, 3)
+    with torch.no_grad():
+        colour.matrix[1] *= 2.0
+    assert torch.equal(colour(rgb, -1), rgb)
+    assert torch.allclose(colour(rgb, 1), 2 * rgb)
+
+
+def test_effects_spec_parsing():
+    assert parse_effects("auto") == {"exposure": "auto", "lod": "auto", "sky": "auto"}
+    assert parse_effects("auto,sky=off")["sky"] == "off"
+    with pytest.raises(HicoError, match="unknown effect 'fog'"):
+        parse_effects("fog=on")
+    with pytest.raises(HicoError, match="expected 'auto'"):
+        parse_effects("sky")
+
+
+def test_bench_effects_axis_plans_one_run_per_effects_value(tmp_path):
+    from hico_plugin.bench.matrix import BENCH_MODES, plan
+
+    import dataclasses
+
+    bench = dataclasses.replace(BENCH_MODES["effects"], output_dir=tmp_path).resolved()
+    runs = plan(bench)
+    assert len(runs) == len(bench.scenes) * len(bench.effects)
+    by_effects = {r["effects"]: r for r in runs if r["scene"] == "tiny"}
+    assert by_effects["auto"]["preset"] == "hico-gs-lite"
+    assert by_effects["sky=on,exposure=off,lod=on"]["config"].model.effects == "sky=on,exposure=off,lod=on"
+    assert len({r["run_dir"] for r in runs}) == len(runs)  # every effects value trains its own run
