@@ -14,7 +14,6 @@ ever allocated.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field as dataclass_field
 from typing import Any
@@ -30,7 +29,6 @@ from hico_plugin.errors import HicoError
 from hico_plugin.field.decoder import NeuralGaussians
 from hico_plugin.field.field import FieldConfig
 from hico_plugin.losses import LossesConfig
-from hico_plugin.losses.dngc import warmup_weight
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
 from hico_plugin.model.sky import SkyConfig
 from hico_plugin.rasterizer import RenderOutputs
@@ -82,12 +80,7 @@ class HiCoModel(nn.Module):
                                         num_train_cameras=len(train_ids), total_steps=total_steps)
         self.renderer = config.renderer.setup()
         scale = (total_steps / config.field.reference_steps) if (config.scale_schedules and total_steps) else 1.0
-        dngc = config.losses.dngc
-        losses_config = dataclasses.replace(config.losses, dngc=dataclasses.replace(
-            dngc, start_step=int(round(dngc.start_step * scale)),
-            warmup_steps=int(round(dngc.warmup_steps * scale))))
-        self.dngc_config = losses_config.dngc
-        self.losses = losses_config.setup()
+        self.losses = config.losses.setup(schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
         self.sky = config.sky.setup() if config.sky.enabled else None
@@ -189,7 +182,7 @@ class HiCoModel(nn.Module):
         count = len(views)
         metrics: dict[str, float | Tensor] = {f"loss/{k}": v / count for k, v in term_sums.items()}
         metrics["psnr"] = sum(psnrs) / count
-        metrics["dngc_weight"] = self.dngc_weight(step)
+        metrics.update(self.losses.metrics(step))
         self.last_num_gaussians = len(views[-1][1])
         return StepOutput(loss=total / count, metrics=metrics, extras={"views": views, "batch_size": count})
 
@@ -233,10 +226,6 @@ class HiCoModel(nn.Module):
             results["normal_error_median_deg"] = None if err is None else err.median_deg
         results["images"] = {"rgb": rgb, "gt": image}
         return results
-
-    def dngc_weight(self, step: int) -> float:
-        cfg = self.dngc_config
-        return warmup_weight(step, cfg.start_step, cfg.warmup_steps) if cfg.enabled else 0.0
 
     def stats(self) -> dict[str, float]:
         out = self.field.stats()
