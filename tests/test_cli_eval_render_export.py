@@ -19,7 +19,7 @@ from hico_plugin.export import load_trained_run, read_ply
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
 from hico_plugin.mesh.mesh import TriangleMesh
 from hico_plugin.mesh.mesh import write_ply as write_mesh
-from hico_plugin.viewer.options import RenderOptions
+from hico_plugin.visualization.options import RenderOptions
 
 
 @pytest.fixture

@@ -125,10 +125,10 @@ class HiCoModel(nn.Module):
         """``out.rgb`` (rendered without background) over the sky: rgb + (1 - alpha) * sky, [H,W,3]."""
         return out.rgb + (1.0 - out.alpha) * self.sky(camera)
 
-    # ----- viewer (hico_plugin.viewer.state.ViewableModel) ----------------------------------------
+    # ----- rendering for people (viewer, hico-eval, hico-render; see hico_plugin.visualization) -----
 
     @torch.no_grad()
-    def viewer_render(self, camera: Camera, options: Any) -> dict[str, Tensor]:
+    def render_for_display(self, camera: Camera, options: Any) -> dict[str, Tensor]:
         """The render outputs ``options.required_outputs`` names; "level" is the alpha-normalised
         octree level of the drawn Gaussians, composited as a colour channel."""
         wanted = set(options.required_outputs) - {"level"}
