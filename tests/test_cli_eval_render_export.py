@@ -15,7 +15,8 @@ from hico_plugin.cli import evaluate as eval_cli
 from hico_plugin.cli import export as export_cli
 from hico_plugin.cli import render as render_cli
 from hico_plugin.engine import load_config, save_config
-from hico_plugin.export import load_trained_run, read_ply
+from hico_plugin.engine import load_run
+from hico_plugin.export import read_ply
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
 from hico_plugin.mesh.mesh import TriangleMesh
 from hico_plugin.mesh.mesh import write_ply as write_mesh
@@ -48,7 +49,7 @@ def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsy
 
 
 def test_eval_scores_a_mesh_against_the_ground_truth_surface(run_dir, tmp_path, capsys):
-    run = load_trained_run(run_dir / "config.yml")
+    run = load_run(run_dir / "config.yml")
     gt = run.dataset.transform.points_to_colmap(run.dataset.gt_surface_points.double()).numpy()
     # A mesh of tiny triangles at the ground-truth points: it lies on the true surface.
     corners = gt[:, None, :] + np.array([[0.0, 0, 0], [1e-4, 0, 0], [0, 1e-4, 0]])
@@ -85,7 +86,7 @@ def test_render_test_path_matches_the_model_render(run_dir, tmp_path):
                                       str(tmp_path), "--scale", "0.5"]))
     frames = sorted((tmp_path / "rgb").iterdir())
     assert len(frames) == 2
-    run = load_trained_run(run_dir / "config.yml")
+    run = load_run(run_dir / "config.yml")
     camera = run.dataset.cameras[int(run.dataset.test_indices[1])].scaled(0.5)
     with torch.no_grad():
         out, _ = run.model.render(camera, ("rgb",))
@@ -100,7 +101,7 @@ def test_export_gaussians_in_colmap_frame_with_drops_counted(run_dir, tmp_path, 
                                              "--camera-index", "3", "--output", str(tmp_path / "g.ply")]))
     rows = read_ply(path)
     assert rows.dtype.names == INRIA_FIELDS
-    run = load_trained_run(run_dir / "config.yml")
+    run = load_run(run_dir / "config.yml")
     with torch.no_grad():
         _, gaussians = run.model.render(run.dataset.cameras[3], ("alpha",))
     keep = gaussians.opacities >= MIN_OPACITY
@@ -122,7 +123,7 @@ def test_exported_gaussians_render_like_the_model(run_dir, tmp_path):
     path = export_cli.main(export_cli.parse(["--load-config", str(run_dir / "config.yml"), "gaussians",
                                              "--output", str(tmp_path / "g.ply")]))
     rows = read_ply(path)
-    run = load_trained_run(run_dir / "config.yml")
+    run = load_run(run_dir / "config.yml")
     transform, camera = run.dataset.transform, run.dataset.cameras[0]
 
     def column(*names):
@@ -144,7 +145,7 @@ def test_export_anchors_with_options_after_the_target(run_dir, tmp_path):
     path = export_cli.main(export_cli.parse(["anchors", "--output", str(tmp_path / "a.ply"), "--load-config",
                                              str(run_dir / "config.yml")]))
     rows = read_ply(path)
-    run = load_trained_run(run_dir / "config.yml")
+    run = load_run(run_dir / "config.yml")
     positions, levels = run.model.field.anchor_points()
     assert len(rows) == len(positions)
     np.testing.assert_array_equal(rows["level"], levels.numpy())
@@ -206,5 +207,5 @@ def test_moved_run_finds_its_checkpoints_next_to_the_config(run_dir, tmp_path):
     config = load_config(moved / "config.yml")
     config.output_dir = tmp_path / "gone"
     save_config(config, moved / "config.yml")
-    run = load_trained_run(moved / "config.yml")
+    run = load_run(moved / "config.yml")
     assert run.checkpoint == moved / "checkpoints" / "step-000000002.ckpt" and run.run_dir == moved

@@ -92,16 +92,13 @@ def _nan_to_none(values: Any) -> Any:
 
 def run_features(run_dir: Path) -> dict[str, Any]:
     """Anchor features of a trained run: {"method", "f", "f_hat" (None without CLCA), "levels", "num_levels"}."""
-    from hico_plugin.engine.checkpoints import latest_checkpoint
-    from hico_plugin.engine.trainer import load_run
+    from hico_plugin.engine.loading import load_run
 
     config_path = run_dir / "config.yml"
     if not config_path.is_file():
         raise HicoError(f"{run_dir}: not a training run (expected {config_path})")
-    checkpoint = latest_checkpoint(run_dir / "checkpoints")
-    if checkpoint is None:
-        raise HicoError(f"{run_dir / 'checkpoints'}: no checkpoint to analyse")
-    config, model, _ = load_run(config_path, checkpoint, device="cpu")
+    run = load_run(config_path, device="cpu")
+    config, model = run.config, run.model
     field = model.field
     with torch.no_grad():
         features = field.anchor_features.detach().float()

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import tyro
 
+import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
 from hico_plugin.errors import HicoError
 

@@ -18,12 +18,14 @@ import numpy as np
 import torch
 import tyro
 
+import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
 from hico_plugin.cli.render import FrameRequest
 from hico_plugin.engine import evaluate, write_eval_json
+from hico_plugin.engine.checkpoints import load_checkpoint
 from hico_plugin.engine.data import load_view
 from hico_plugin.errors import HicoError
-from hico_plugin.export import LoadedRun, load_trained_run
+from hico_plugin.engine import LoadedRun, load_run
 from hico_plugin.export.frames import write_png
 from hico_plugin.mesh.evaluate import surface_results
 from hico_plugin.visualization.options import RenderOptions
@@ -52,7 +54,7 @@ class EvalArgs:
 
 def checkpoint_info(path: Path) -> dict[str, Any]:
     """``step`` and ``train_seconds`` recorded in a checkpoint (memory-mapped: tensors stay on disk)."""
-    payload = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+    payload = load_checkpoint(Path(path), mmap=True)
     return {key: payload[key] for key in ("step", "train_seconds") if key in payload}
 
 
@@ -74,7 +76,7 @@ def save_test_renders(run: LoadedRun, render_dir: Path) -> int:
 
 
 def main(args: EvalArgs) -> dict[str, Any]:
-    run = load_trained_run(args.load_config, args.checkpoint, args.device)
+    run = load_run(args.load_config, args.checkpoint, args.device)
     indices = [int(i) for i in run.dataset.test_indices]
     if not indices:
         raise HicoError(f"{args.load_config}: the run's dataset has no test views to evaluate")

@@ -18,7 +18,9 @@ from typing import Annotated, Sequence, Union
 import torch
 import tyro
 
+import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
+from hico_plugin.engine import load_run
 from hico_plugin.errors import HicoError
 from hico_plugin.export import (
     LoadedRun,
@@ -26,7 +28,6 @@ from hico_plugin.export import (
     facing_normals,
     gaussians_to_colmap,
     inria_vertices,
-    load_trained_run,
     write_ply,
 )
 from hico_plugin.mesh import MeshExportConfig
@@ -109,7 +110,7 @@ def parse(args: Sequence[str]) -> ExportArgs:
 
 
 def main(args: ExportArgs) -> Path:
-    run = load_trained_run(args.load_config, args.checkpoint, args.device)
+    run = load_run(args.load_config, args.checkpoint, args.device)
     return args.target.run(run)
 
 

@@ -20,8 +20,9 @@ class InspectConfig(ColmapDataParserConfig):
 
     data: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")] = field()
     """Dataset directory holding images/ and sparse/0/."""
-    verify_images: bool = False
-    """Also decode every image and mask (slow on big scenes; fills the undistortion cache)."""
+    verify_images: bool = True
+    """Decode every image and mask (fills the undistortion cache); --no-verify-images skips it on big
+    scenes (headers are still checked against the cameras)."""
 
 
 def scene_label(metadata: dict) -> str:

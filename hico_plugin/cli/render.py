@@ -19,9 +19,11 @@ import torch
 import tyro
 
 from hico_plugin.cameras import Camera, Cameras
+import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
 from hico_plugin.errors import HicoError
-from hico_plugin.export import interpolate_path, load_trained_run, orbit_path
+from hico_plugin.engine import load_run
+from hico_plugin.export import interpolate_path, orbit_path
 from hico_plugin.export.frames import Mp4Writer, write_png
 from hico_plugin.visualization.options import COLORMAP_NAMES, RenderOptions
 from hico_plugin.visualization.visualize import visualize
@@ -93,7 +95,7 @@ def main(args: RenderArgs) -> Path:
         raise HicoError(f"--colormap: '{args.colormap}' is not one of {', '.join(COLORMAP_NAMES)}")
     if args.scale <= 0 or args.fps <= 0:
         raise HicoError(f"--scale / --fps: expected > 0, got {args.scale} / {args.fps}")
-    run = load_trained_run(args.load_config, args.checkpoint, args.device)
+    run = load_run(args.load_config, args.checkpoint, args.device)
     cameras = [c.scaled(args.scale) for c in path_cameras(run.dataset, args.path, args.num_frames)]
     names = list(dict.fromkeys(args.outputs))
     options = {name: RenderOptions(output=name.replace("-", "_"), colormap=args.colormap,

@@ -13,6 +13,7 @@ from typing import Any
 
 import tyro
 
+import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer import RunViewerState, ViewableModel, ViewerConfig, model_render_fn
@@ -57,7 +58,8 @@ def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any]]:
         raise HicoError(f"--load-config: {args.load_config} is not a file (expected RUN/config.yml)")
     from hico_plugin.engine import load_run
 
-    config, model, dataset = load_run(args.load_config, checkpoint=args.checkpoint, device=args.device)
+    run = load_run(args.load_config, checkpoint=args.checkpoint, device=args.device)
+    config, model, dataset = run.config, run.model, run.dataset
     if not isinstance(model, ViewableModel):
         raise HicoError(
             f"{args.load_config}: model {type(model).__name__} cannot be viewed "

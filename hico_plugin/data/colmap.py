@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from hico_plugin.data.checks import check_intrinsics
 from hico_plugin.data.undistort import SUPPORTED_MODELS
 from hico_plugin.errors import HicoError
 
@@ -67,6 +68,9 @@ def read_colmap_model(model_dir: Path) -> ColmapModel:
             )
         if not np.isfinite(camera.params).all() or camera.width <= 0 or camera.height <= 0:
             raise HicoError(f"{model_dir}/cameras: camera {camera_id} has non-finite parameters or an empty size")
+        check_intrinsics(f"{model_dir}/cameras: camera {camera_id}", camera.width, camera.height,
+                         camera.focal_length_x, camera.focal_length_y,
+                         camera.principal_point_x, camera.principal_point_y)
 
     viewmats = np.tile(np.eye(4), (len(images), 1, 1))
     viewmats[:, :3, :] = np.stack([image.cam_from_world().matrix() for image in images])

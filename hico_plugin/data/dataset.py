@@ -15,6 +15,7 @@ from torch import Tensor
 from hico_plugin.cameras import Cameras
 from hico_plugin.data import images as image_io
 from hico_plugin.data.cache import ByteLRUCache
+from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import PINHOLE_MODELS, remap, undistortion_maps
 from hico_plugin.errors import HicoError
@@ -230,10 +231,11 @@ class Dataset:
     def _undistorted_path(self, i: int) -> Path | None:
         if self.undistorted_dir is None or not self.sources[self.camera_ids[i]].needs_undistortion:
             return None
-        return self.undistorted_dir / f"{self.image_names[i]}.png"
+        return resolve_inside(self.undistorted_dir, f"{self.image_names[i]}.png", f"image '{self.image_names[i]}'")
 
     def _gt_path(self, kind: str, i: int) -> Path | None:
-        path = self.data_dir / "ground_truth" / kind / Path(self.image_names[i]).with_suffix(".npy")
+        name = Path(self.image_names[i]).with_suffix(".npy").as_posix()
+        path = resolve_inside(self.data_dir / "ground_truth" / kind, name, f"ground_truth/{kind} of image '{self.image_names[i]}'")
         return path if path.is_file() else None
 
     @staticmethod

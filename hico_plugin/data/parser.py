@@ -14,8 +14,10 @@ import torch
 
 from hico_plugin.cameras import Cameras
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
 from hico_plugin.data.colmap import ColmapModel, find_model_dir, read_colmap_model
 from hico_plugin.data.dataset import CameraSource, Dataset
+from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
@@ -67,9 +69,10 @@ class ColmapDataParserConfig(InstantiateConfig):
             )
         if self.downscale < 1:
             raise HicoError(f"--downscale: expected a whole number >= 1, got {self.downscale}")
-        model = read_colmap_model(find_model_dir(data_dir))
+        model_dir = find_model_dir(data_dir)
+        model = read_colmap_model(model_dir)
         image_dir = self._image_dir()
-        image_paths = [image_dir / name for name in model.names]
+        image_paths = [resolve_inside(image_dir, name, f"{model_dir}/images: image '{name}'") for name in model.names]
         missing = [str(path) for path in image_paths if not path.is_file()]
         if missing:
             raise HicoError(
@@ -78,6 +81,12 @@ class ColmapDataParserConfig(InstantiateConfig):
         train_indices, test_indices = self._split(model.names)
 
         sources = {camera_id: self._camera_source(camera) for camera_id, camera in model.cameras.items()}
+        for camera_id, source in sources.items():  # the size training sees, after --downscale
+            width, height = source.pinhole.width, source.pinhole.height
+            if min(width, height) < MIN_LOADED_SIZE:
+                raise HicoError(f"{model_dir}/cameras: camera {camera_id} loads at {width}x{height} px; expected "
+                                f"at least {MIN_LOADED_SIZE}x{MIN_LOADED_SIZE} (lower --downscale)")
+        check_image_sizes(image_paths, [sources[camera_id].full_size for camera_id in model.camera_ids])
         viewmats_colmap = torch.from_numpy(model.viewmats)
         points_colmap = torch.from_numpy(model.points)
         transform = SceneTransform.identity()
@@ -159,7 +168,9 @@ class ColmapDataParserConfig(InstantiateConfig):
             return [None] * len(names)
         paths = []
         for name in names:
-            candidates = (mask_dir / f"{name}.png", mask_dir / Path(name).with_suffix(".png"))
+            what = f"masks: mask of image '{name}'"
+            candidates = (resolve_inside(mask_dir, f"{name}.png", what),
+                          resolve_inside(mask_dir, Path(name).with_suffix(".png").as_posix(), what))
             paths.append(next((path for path in candidates if path.is_file()), None))
         return paths
 

@@ -3,7 +3,7 @@
 Public API (see each module for details)::
 
     TrainerConfig(...).setup(model=..., dataset=..., callbacks=[...]) -> Trainer; Trainer.train()
-    load_run(config_path, checkpoint=None, device=None) -> (config, model, dataset)
+    load_run(config_path, checkpoint=None, device=None) -> LoadedRun (config, model, dataset, checkpoint, run_dir)
     Optimizers(param_groups, schedules); Optimizers.resize_group(name, new_params, kept_rows, num_new)
     save_config(config, path) / load_config(path)
     distributed: is_main_process(), all_reduce_sum_(t), all_reduce_mean_(t), get_rank(), get_world_size()
@@ -15,9 +15,11 @@ from hico_plugin.engine.distributed import all_reduce_mean_, all_reduce_sum_, is
 from hico_plugin.engine.evaluation import evaluate, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainableModel, TrainBatch, TrainDataset
-from hico_plugin.engine.trainer import Trainer, TrainerConfig, TrainResult, load_run
+from hico_plugin.engine.loading import LoadedRun, load_run
+from hico_plugin.engine.trainer import Trainer, TrainerConfig, TrainResult
 
 __all__ = [
+    "LoadedRun",
     "LRSchedule",
     "Optimizers",
     "StepOutput",

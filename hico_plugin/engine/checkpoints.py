@@ -1,10 +1,15 @@
-"""Checkpoints ``RUN/checkpoints/step-XXXXXXXXX.ckpt``: written atomically, the last few kept."""
+"""Checkpoints ``RUN/checkpoints/step-XXXXXXXXX.ckpt``: written atomically, the last few kept.
+
+A checkpoint holds only tensors, numbers, strings and containers, so it is read with
+``torch.load(weights_only=True)``: a crafted file cannot run code (the config lives in config.yml).
+"""
 
 from __future__ import annotations
 
 import os
 import random
 import re
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -36,18 +41,29 @@ def latest_checkpoint(checkpoint_dir: Path) -> Path | None:
 
 def save_checkpoint(checkpoint_dir: Path, step: int, payload: dict[str, Any], keep_last: int) -> Path:
     """Write ``payload`` as the checkpoint of ``step`` (temp file + ``os.replace``, so a crash never
-    leaves a torn file under the final name), then delete all but the newest ``keep_last``."""
-    checkpoint_dir.mkdir(parents=True, exist_ok=True)
+    leaves a torn file under the final name), then delete all but the newest ``keep_last``.
+
+    An OSError (disk full, read-only, permission) is a HicoError naming the path; the earlier
+    checkpoints are left as they were."""
     path = checkpoint_path(checkpoint_dir, step)
-    fd, tmp = tempfile.mkstemp(dir=checkpoint_dir, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
+        checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=checkpoint_dir, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as stream:
             torch.save(payload, stream)
             stream.flush()
             os.fsync(stream.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as err:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(err, OSError):
+            raise HicoError(f"{path}: cannot write the checkpoint ({err.strerror or err}); "
+                            "earlier checkpoints are kept") from None
+        if isinstance(err, RuntimeError) and "write" in str(err).lower():  # torch wraps a full disk
+            raise HicoError(f"{path}: cannot write the checkpoint ({str(err).splitlines()[0]}); "
+                            "earlier checkpoints are kept") from None
         raise
     if keep_last > 0:
         for old in list_checkpoints(checkpoint_dir)[:-keep_last]:
@@ -55,30 +71,58 @@ def save_checkpoint(checkpoint_dir: Path, step: int, payload: dict[str, Any], ke
     return path
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
+def load_checkpoint(path: Path, mmap: bool = False) -> dict[str, Any]:
+    """The payload of ``path``; HicoError for a missing, truncated, foreign or code-carrying file."""
     if not path.is_file():
         raise HicoError(f"{path}: checkpoint not found")
     try:
-        # weights_only=False: the payload holds numpy / python RNG states, and checkpoints are our own.
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # a truncated or foreign file
-        raise HicoError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from None
+        payload = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+    except Exception as err:  # noqa: BLE001 - truncated, random bytes, or a pickle naming code
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
+        if "weights_only" in str(err) or "Unsupported global" in str(err):
+            first = "it holds Python objects other than tensors and numbers; refused without running them"
+        raise HicoError(f"{path}: not a readable checkpoint ({first})") from None
     if not isinstance(payload, dict) or "step" not in payload or "model" not in payload:
         raise HicoError(f"{path}: not a hico checkpoint (expected keys 'step' and 'model')")
     return payload
 
 
+def newest_readable_checkpoint(checkpoint_dir: Path) -> tuple[Path, dict[str, Any]] | None:
+    """(path, payload) of the newest checkpoint that loads; each newer unreadable one is skipped with
+    a warning naming it. None when the folder holds no checkpoint; HicoError when none is readable."""
+    checkpoints = list_checkpoints(checkpoint_dir)
+    errors = []
+    for path in reversed(checkpoints):
+        try:
+            return path, load_checkpoint(path)
+        except HicoError as err:
+            errors.append(str(err))
+            print(f"warning: skipping {err}", file=sys.stderr)
+    if errors:
+        raise HicoError(f"{checkpoint_dir}: none of the {len(errors)} checkpoints is readable ({errors[0]})")
+    return None
+
+
 def rng_state() -> dict[str, Any]:
-    """The RNG states of python, numpy and torch (CPU and, when present, CUDA)."""
-    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    """The RNG states of python, numpy and torch (CPU and, when present, CUDA), as tensors, numbers
+    and lists only (what ``weights_only`` loading accepts)."""
+    version, internal, gauss = random.getstate()
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    state = {
+        "python": [version, torch.tensor(internal, dtype=torch.int64), gauss],
+        "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(cached)],
+        "torch": torch.get_rng_state(),
+    }
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(int(v) for v in internal.tolist()), gauss))
+    kind, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
     torch.set_rng_state(state["torch"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])

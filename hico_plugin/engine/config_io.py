@@ -1,7 +1,7 @@
 """``config.yml``: the whole config dataclass tree as YAML that reloads the run exactly.
 
 Every dataclass is written with its import path as a YAML tag, so ``load_config`` rebuilds the same
-classes (presets, subclasses, plugin components) without knowing them in advance::
+classes (presets, subclasses, plugin components)::
 
     !dataclass:hico_plugin.engine.trainer.TrainerConfig
     max_steps: 3000
@@ -11,13 +11,18 @@ classes (presets, subclasses, plugin components) without knowing them in advance
 
 Paths and tuples keep their types (``!path``, ``!tuple``); fields missing from the file take their
 defaults, unknown fields are an error naming the file and the field.
+
+A config.yml is untrusted: a tag resolves only to a config class already loaded -- a subclass of
+``InstantiateConfig`` (every component, preset and plug-in config) or a dataclass / enum one of them
+holds -- and never imports the module it names (an import would run that module's code). Whoever
+loads a run imports the components first (the CLIs import ``hico_plugin.presets``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import os
+import typing
 import tempfile
 from enum import Enum
 from pathlib import Path, PurePath
@@ -57,26 +62,58 @@ _ConfigDumper.add_multi_representer(object, _represent_object)
 _ConfigDumper.add_representer(tuple, lambda dumper, value: dumper.represent_sequence("!tuple", list(value)))
 
 
-def _import(qualified: str, loader: _ConfigLoader) -> Any:
-    # Nested classes: peel attributes off the right until the rest imports as a module.
-    parts = qualified.split(".")
-    for split in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:split]))
-        except ImportError:
+def _qualified(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _classes_in(annotation: Any) -> list[type]:
+    """The classes a field annotation names (through ``X | None``, ``tuple[X, ...]``, ...)."""
+    if isinstance(annotation, type):
+        return [annotation]
+    return [cls for arg in typing.get_args(annotation) for cls in _classes_in(arg)]
+
+
+def allowed_config_classes() -> dict[str, type]:
+    """Import path -> class of every config class a config.yml may name: the loaded subclasses of
+    ``InstantiateConfig`` and the dataclasses / enums their fields hold, transitively."""
+    from hico_plugin.config import InstantiateConfig
+
+    allowed: dict[str, type] = {}
+    stack: list[type] = [InstantiateConfig]
+    while stack:
+        cls = stack.pop()
+        if _qualified(cls) in allowed:
+            continue
+        allowed[_qualified(cls)] = cls
+        stack += cls.__subclasses__() if issubclass(cls, InstantiateConfig) else []
+        if not dataclasses.is_dataclass(cls):
             continue
         try:
-            for name in parts[split:]:
-                obj = getattr(obj, name)
-            return obj
-        except AttributeError:
-            break
-    raise HicoError(f"{loader.name}: cannot import '{qualified}' named in the config") from None
+            hints = list(typing.get_type_hints(cls).values())
+        except Exception:  # noqa: BLE001 - an annotation naming an unloaded type: use the defaults
+            hints = []
+        for field in dataclasses.fields(cls):
+            if field.default is not dataclasses.MISSING and field.default is not None:
+                hints.append(type(field.default))
+        stack += [c for hint in hints for c in _classes_in(hint)
+                  if (dataclasses.is_dataclass(c) or issubclass(c, Enum)) and _qualified(c) not in allowed]
+    return allowed
+
+
+def _config_class(qualified: str, loader: _ConfigLoader) -> type:
+    allowed = getattr(loader, "allowed", None)
+    if allowed is None:
+        allowed = loader.allowed = allowed_config_classes()
+    if qualified not in allowed:
+        raise HicoError(f"{loader.name}: '{qualified}' is not a registered config class; refused without "
+                        "importing it (expected a config.yml written by hico-train; install the plug-in "
+                        "that provides it)")
+    return allowed[qualified]
 
 
 def _construct_dataclass(loader: _ConfigLoader, suffix: str, node: yaml.Node) -> Any:
-    cls = _import(suffix, loader)
-    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+    cls = _config_class(suffix, loader)
+    if not dataclasses.is_dataclass(cls):
         raise HicoError(f"{loader.name}: '{suffix}' is not a config dataclass")
     values = loader.construct_mapping(node, deep=True) if isinstance(node, yaml.MappingNode) else {}
     init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
@@ -87,7 +124,9 @@ def _construct_dataclass(loader: _ConfigLoader, suffix: str, node: yaml.Node) ->
 
 
 def _construct_enum(loader: _ConfigLoader, suffix: str, node: yaml.Node) -> Any:
-    cls = _import(suffix, loader)
+    cls = _config_class(suffix, loader)
+    if not issubclass(cls, Enum):
+        raise HicoError(f"{loader.name}: '{suffix}' is not an enum")
     name = loader.construct_scalar(node)
     try:
         return cls[name]

@@ -1,9 +1,13 @@
-"""The step loop: batches, optimisers, checkpoints, resume, eval, Ctrl-C, callbacks, distributed.
+"""The step loop: batches, optimisers, resume, eval, callbacks, distributed.
 
-Run directory (``config.output_dir``)::
+Its neighbours hold the rest: ``run_dir`` (where a run lives, its lock, the log trimmed on resume),
+``checkpoints`` (files), ``stopping`` (SIGINT / SIGTERM / SIGHUP, the interrupted exit code),
+``controls`` (pause / checkpoint / stop from the viewer), ``loading`` (a trained run for the CLIs).
+
+Run directory (``config.output_dir``, locked while a trainer writes it)::
 
     config.yml                         the resolved config tree (``load_config`` reloads it)
-    metrics.jsonl                      one JSON object per logged step / eval
+    metrics.jsonl                      one JSON object per logged step / eval (trimmed on resume)
     checkpoints/step-XXXXXXXXX.ckpt    named by the number of completed steps; the last few kept
     eval.json                          ns-eval layout, written after the final evaluation
 
@@ -15,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
-import signal
 import sys
 import threading
 import time
@@ -32,16 +35,20 @@ from hico_plugin.engine.callbacks import MetricsLog, ProgressBar, TensorBoardLog
 from hico_plugin.engine.checkpoints import (
     latest_checkpoint,
     load_checkpoint,
+    newest_readable_checkpoint,
     rng_state,
     save_checkpoint,
     seed_everything,
     set_rng_state,
 )
-from hico_plugin.engine.config_io import load_config, save_config
+from hico_plugin.engine.config_io import save_config
+from hico_plugin.engine.controls import TrainerControls
 from hico_plugin.engine.data import batch_positions, make_batch, rank_slice
 from hico_plugin.engine.evaluation import evaluate, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import StepOutput, TrainableModel, TrainDataset
+from hico_plugin.engine.run_dir import RunLock, trim_metrics
+from hico_plugin.engine.stopping import stop_on_signals
 from hico_plugin.errors import HicoError
 
 
@@ -59,7 +66,11 @@ class TrainerConfig(InstantiateConfig):
     experiment_name: str = "unnamed"
     """Experiment (scene) name recorded in eval.json."""
     output_dir: Path = Path("outputs/unnamed")
-    """Run directory: config.yml, metrics.jsonl, checkpoints/, eval.json."""
+    """Run directory: config.yml, metrics.jsonl, checkpoints/, eval.json (hico-train's default:
+    outputs/<experiment>/<method>/<timestamp>)."""
+    timestamp: str = ""
+    """Run folder name under outputs/<experiment>/<method>/ when --output-dir is not given (default:
+    the start time, YYYY-MM-DD_HHMMSS; with --resume, the newest run there)."""
     data: InstantiateConfig | None = None
     """Dataset config; ``data.setup()`` returns the dataset."""
     model: InstantiateConfig | None = None
@@ -131,7 +142,7 @@ class TrainResult:
     step: int
     """Completed optimizer steps."""
     interrupted: bool
-    """True when stopped early (Ctrl-C / ``request_stop``) after saving a checkpoint."""
+    """True when stopped early (a stop signal / ``request_stop``) after saving a checkpoint."""
     checkpoint: Path | None
     """The last checkpoint written (rank 0; None elsewhere or when none was written)."""
     eval_results: dict[str, Any] | None
@@ -189,13 +200,18 @@ class Trainer:
         self.latest_metrics: dict[str, float] = {}
         self.last_eval: dict[str, Any] | None = None
         self.lock = threading.RLock()
-        self._paused = threading.Event()
-        self._checkpoint_requested = threading.Event()
-        self._stop_requested = threading.Event()
-        self._start_run()
+        self.controls = TrainerControls(self.device)
+        self.run_lock = RunLock(self.run_dir)
         if self.is_main:
-            self._add_default_callbacks()
-            self.callbacks += list(callbacks)
+            self.run_lock.acquire()
+        try:
+            self._start_run()
+            if self.is_main:
+                self._add_default_callbacks()
+                self.callbacks += list(callbacks)
+        except BaseException:
+            self.run_lock.release()
+            raise
 
     # ----------------------------------------------------------------- controls (viewer, signals)
     @property
@@ -204,19 +220,19 @@ class Trainer:
 
     @property
     def is_paused(self) -> bool:
-        return self._paused.is_set()
+        return self.controls.paused.is_set()
 
     def pause(self) -> None:
-        self._paused.set()
+        self.controls.paused.set()
 
     def resume_training(self) -> None:
-        self._paused.clear()
+        self.controls.paused.clear()
 
     def request_checkpoint(self) -> None:
-        self._checkpoint_requested.set()
+        self.controls.checkpoint_requested.set()
 
     def request_stop(self) -> None:
-        self._stop_requested.set()
+        self.controls.request_stop()
 
     def add_callback(self, callback: TrainerCallback) -> None:
         """Add a callback (rank 0 only: on other ranks callbacks are not run)."""
@@ -225,9 +241,12 @@ class Trainer:
 
     # ----------------------------------------------------------------- run directory and resume
     def _start_run(self) -> None:
-        latest = dist_utils.broadcast_object(
-            latest_checkpoint(self.checkpoint_dir) if self.is_main else None
-        )
+        newest = None
+        if self.is_main:
+            # Fresh runs only ask whether checkpoints exist; resumes skip unreadable newer ones.
+            newest = (newest_readable_checkpoint(self.checkpoint_dir) or (None, None))[0] if self.config.resume \
+                else latest_checkpoint(self.checkpoint_dir)
+        latest = dist_utils.broadcast_object(newest)
         if latest is not None and not self.config.resume:
             if not self.config.overwrite:
                 raise HicoError(
@@ -243,6 +262,8 @@ class Trainer:
         dist_utils.barrier()
         if latest is not None:
             self.load_checkpoint(latest)
+            if self.is_main:
+                trim_metrics(self.run_dir / "metrics.jsonl", self.step)
         else:
             if self.config.resume and self.is_main:
                 print(f"note: no checkpoint in {self.checkpoint_dir}; starting a new run", file=sys.stderr)
@@ -250,7 +271,10 @@ class Trainer:
                 dist_utils.broadcast_module_(self.model)
             self.optimizers = self._make_optimizers()
         if self.is_main:  # resume / overwrite are one-off actions, not properties of the run
-            save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml")
+            try:
+                save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml")
+            except OSError as err:
+                raise HicoError(f"{self.run_dir / 'config.yml'}: cannot write ({err.strerror or err})") from None
 
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))
@@ -269,11 +293,10 @@ class Trainer:
 
     def load_checkpoint(self, path: Path) -> None:
         """Restore model, optimizers, step, train time and RNG states from ``path``."""
+        from hico_plugin.engine.loading import restore_model
+
         payload = load_checkpoint(Path(path))
-        try:
-            self.model.load_state_dict(payload["model"])
-        except RuntimeError as err:
-            raise HicoError(f"{path}: checkpoint does not fit the configured model ({str(err).splitlines()[0]})") from None
+        restore_model(self.model, payload, Path(path))
         self.optimizers = self._make_optimizers()  # after loading: the model may hold new Parameters
         self.optimizers.load_state_dict(payload["optimizers"])
         self.step = int(payload["step"])
@@ -323,22 +346,6 @@ class Trainer:
         means = (vector[:-1] / self.world_size).tolist()
         return dict(zip(["loss", *metric_names], means)), bool(vector[-1] == 0)
 
-    def _control_flags(self) -> tuple[bool, bool, bool]:
-        """(stop, checkpoint, pause) requested on any rank, identical on every rank.
-
-        Reading a checkpoint request consumes it. Pausing is agreed too, so under torchrun the other
-        workers idle with rank 0 instead of timing out at the next collective.
-        """
-        checkpoint = self._checkpoint_requested.is_set()
-        if checkpoint:
-            self._checkpoint_requested.clear()
-        flags = torch.tensor(
-            [float(self._stop_requested.is_set()), float(checkpoint), float(self._paused.is_set())],
-            device=self.device,
-        )
-        stop, checkpoint, paused = (dist_utils.all_reduce_sum_(flags) > 0).tolist()
-        return stop, checkpoint, paused
-
     def _train_step(self, step: int) -> tuple[dict[str, float], bool]:
         positions = batch_positions(
             len(self.train_indices), self.config.batch_size * self.world_size, self.config.seed, step
@@ -361,43 +368,36 @@ class Trainer:
 
     # ----------------------------------------------------------------- the loop
     def train(self) -> TrainResult:
-        """Train from ``self.step`` to ``config.max_steps``; Ctrl-C saves a checkpoint and returns."""
-        previous_handler = self._install_sigint_handler()
+        """Train from ``self.step`` to ``config.max_steps``; a stop signal (Ctrl-C, SIGTERM, SIGHUP)
+        saves a checkpoint and returns with ``interrupted`` set. Releases the run directory's lock."""
         try:
-            return self._train_loop()
+            with stop_on_signals(self.controls.request_stop, announce=self.is_main):
+                return self._train_loop()
         finally:
-            if previous_handler is not None:
-                signal.signal(signal.SIGINT, previous_handler)
-
-    def _install_sigint_handler(self):
-        if threading.current_thread() is not threading.main_thread():
-            return None
-
-        def on_sigint(signum, frame):
-            if self._stop_requested.is_set():  # a second Ctrl-C aborts at once
-                raise KeyboardInterrupt
-            self._stop_requested.set()
-            if self.is_main:
-                print("\ninterrupt: saving a checkpoint after this step (Ctrl-C again to abort)", file=sys.stderr)
-
-        return signal.signal(signal.SIGINT, on_sigint)
+            self.run_lock.release()
 
     def _train_loop(self) -> TrainResult:
         config = self.config
         self._run_callbacks("on_train_start", self, self.step)
         nonfinite_streak = 0
         it_per_s = None
-        stop, checkpoint, paused = self._control_flags()
+        stop, checkpoint, paused = self.controls.flags()
         if checkpoint:
             self.save_checkpoint()
         while self.step < config.max_steps and not stop:
-            if paused and self._wait_while_paused():
+            if paused and self.controls.wait_while_paused(self.save_checkpoint):
                 stop = True
                 break
             step = self.step
             start = time.perf_counter()
             with self.lock:
-                metrics, finite = self._train_step(step)
+                try:
+                    metrics, finite = self._train_step(step)
+                except HicoError as err:  # a bad training image: keep what was trained so far
+                    if self._saved_step != self.step:
+                        self.save_checkpoint()
+                    raise HicoError(f"{err} -- training stopped at step {self.step}, saved in "
+                                    f"{self.last_checkpoint}; fix the file, then hico-train --resume") from None
             seconds = time.perf_counter() - start
             self.step += 1
             self.train_seconds += seconds
@@ -419,29 +419,31 @@ class Trainer:
                     f"training: {nonfinite_streak} non-finite losses in a row (last at step {step}); "
                     f"stopped without saving; the last good checkpoint is {self.last_checkpoint or 'none'}"
                 )
-            stop, checkpoint, paused = self._control_flags()  # after the callbacks, which may ask
+            stop, checkpoint, paused = self.controls.flags()  # after the callbacks, which may ask
             if checkpoint or stop or (config.save_every and self.step % config.save_every == 0):
                 self.save_checkpoint()
             if not stop and config.eval_every and self.step % config.eval_every == 0 and self.step < config.max_steps:
-                self._evaluate_and_report(step, write_json=False)
+                self._evaluate_keeping_model(step, write_json=False)
         interrupted = stop and self.step < config.max_steps
         if self._saved_step != self.step:
             self.save_checkpoint()
-        eval_results = None if interrupted else self._evaluate_and_report(max(self.step - 1, 0), write_json=True)
-        self._run_callbacks("on_train_end", max(self.step - 1, 0))
+        try:
+            eval_results = None if interrupted else self._evaluate_keeping_model(max(self.step - 1, 0), write_json=True)
+        finally:
+            self._run_callbacks("on_train_end", max(self.step - 1, 0))
         return TrainResult(self.step, interrupted, self.last_checkpoint if self.is_main else None, eval_results)
 
-    def _wait_while_paused(self) -> bool:
-        """Idle until resumed (all ranks together); checkpoints asked for meanwhile are written at
-        once. Returns True when a stop was requested."""
-        paused = stop = False
-        while True:
-            time.sleep(0.05)
-            stop, checkpoint, paused = self._control_flags()
-            if checkpoint:
+    def _evaluate_keeping_model(self, step: int, write_json: bool) -> dict[str, Any] | None:
+        """``_evaluate_and_report``; a bad test file found while evaluating never loses the trained
+        model: the checkpoint is written first and the error says how to re-run the evaluation."""
+        try:
+            return self._evaluate_and_report(step, write_json)
+        except HicoError as err:
+            if self._saved_step != self.step:
                 self.save_checkpoint()
-            if stop or not paused:
-                return stop
+            raise HicoError(f"{err} -- evaluation failed, the model of step {self.step} is saved in "
+                            f"{self.last_checkpoint}; fix the file, then run hico-eval --load-config "
+                            f"{self.run_dir / 'config.yml'} (or --resume to train on)") from None
 
     def _evaluate_and_report(self, step: int, write_json: bool) -> dict[str, Any] | None:
         """Evaluate on rank 0 (others go on to the next collective and wait there)."""
@@ -474,25 +476,3 @@ class Trainer:
             if method is not None:
                 method(*args)
 
-
-def load_run(
-    config_path: str | Path, checkpoint: str | Path | None = None, device: str | None = None
-) -> tuple[TrainerConfig, TrainableModel, TrainDataset]:
-    """A finished (or running) run: its config, the model with the latest (or the given) checkpoint
-    loaded, in eval mode, and its dataset. For hico-eval / hico-render / hico-export / hico-view."""
-    config = load_config(config_path)
-    if not isinstance(config, TrainerConfig):
-        raise HicoError(f"{config_path}: expected a training run's config.yml, got {type(config).__name__}")
-    seed_everything(config.seed)
-    model, dataset = config.build(resolve_device(device or config.device))
-    path = Path(checkpoint) if checkpoint else latest_checkpoint(Path(config.output_dir) / "checkpoints")
-    if path is None:
-        raise HicoError(f"{Path(config.output_dir) / 'checkpoints'}: no checkpoint to load")
-    payload = load_checkpoint(path)
-    try:
-        model.load_state_dict(payload["model"])
-    except RuntimeError as err:
-        raise HicoError(f"{path}: checkpoint does not fit the configured model ({str(err).splitlines()[0]})") from None
-    if isinstance(model, nn.Module):
-        model.eval()
-    return config, model, dataset

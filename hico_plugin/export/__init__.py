@@ -7,7 +7,6 @@ Public API::
     anchor_vertices(positions, levels, features, colors=None) -> rows
     gaussians_to_colmap(means, scales, transform) -> (means, scales)
     orbit_path(cameras, num_frames) / interpolate_path(cameras, num_frames) -> Cameras
-    load_trained_run(config_path, checkpoint=None, device=None) -> LoadedRun
 """
 
 from hico_plugin.export.camera_paths import interpolate_path, orbit_path
@@ -19,17 +18,14 @@ from hico_plugin.export.gaussians import (
     inria_vertices,
 )
 from hico_plugin.export.ply import read_ply, write_ply
-from hico_plugin.export.runs import LoadedRun, load_trained_run
 
 __all__ = [
     "DroppedRows",
-    "LoadedRun",
     "anchor_vertices",
     "facing_normals",
     "gaussians_to_colmap",
     "inria_vertices",
     "interpolate_path",
-    "load_trained_run",
     "orbit_path",
     "read_ply",
     "write_ply",

@@ -66,8 +66,8 @@ class MeshExportConfig(InstantiateConfig):
         """Load the run at ``config_path`` (RUN/config.yml) and export its mesh; returns the path."""
         from hico_plugin.engine import load_run
 
-        _, model, dataset = load_run(config_path, checkpoint, device)
-        return self.export(model, dataset, Path(config_path).parent)
+        run = load_run(config_path, checkpoint, device)
+        return self.export(run.model, run.dataset, run.run_dir)
 
 
 def scene_extent(dataset: Any) -> float:
