@@ -20,10 +20,9 @@ import tyro
 
 import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
-from hico_plugin.engine import load_run
+from hico_plugin.engine import LoadedRun, load_run
 from hico_plugin.errors import HicoError
 from hico_plugin.export import (
-    LoadedRun,
     anchor_vertices,
     facing_normals,
     gaussians_to_colmap,
