@@ -20,7 +20,7 @@ from hico_plugin.export import read_ply
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
 from hico_plugin.mesh.mesh import TriangleMesh
 from hico_plugin.mesh.mesh import write_ply as write_mesh
-from hico_plugin.visualization.options import RenderOptions
+from hico_plugin.rasterizer import RendererConfig
 
 
 @pytest.fixture
@@ -187,8 +187,8 @@ def test_missing_config_file(cli, tmp_path, capsys):
 
 @pytest.mark.parametrize("cli", sorted(CLIS))
 def test_config_that_is_not_a_run(cli, tmp_path, capsys):
-    save_config(RenderOptions(), tmp_path / "config.yml")  # a valid config.yml of something else
-    assert "not a training run's config.yml" in _error_of(cli, tmp_path / "config.yml", capsys)
+    save_config(RendererConfig(), tmp_path / "config.yml")  # a valid config.yml of something else
+    assert "training run's config.yml" in _error_of(cli, tmp_path / "config.yml", capsys)
     (tmp_path / "plain.yml").write_text("max_steps: 3\n")
     assert "expected a config written by save_config" in _error_of(cli, tmp_path / "plain.yml", capsys)
 
