@@ -80,6 +80,11 @@ class Registry(Generic[T]):
                 f"unknown {self.kind} '{name}'; registered: {', '.join(self.names()) or '(none)'}"
             ) from None
 
+    def registered(self) -> list[tuple[str, T]]:
+        """(name, implementation) in registration order, without importing plug-ins: for building
+        config classes while this package is still being imported."""
+        return list(self._entries.items())
+
     def names(self) -> list[str]:
         load_plugins()
         return sorted(self._entries)

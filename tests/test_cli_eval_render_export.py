@@ -21,7 +21,6 @@ from hico_plugin.field.field import FieldConfig
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
 from hico_plugin.mesh.mesh import TriangleMesh
 from hico_plugin.mesh.mesh import write_ply as write_mesh
-from hico_plugin.viewer.options import RenderOptions
 
 
 @pytest.fixture

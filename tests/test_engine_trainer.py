@@ -79,7 +79,7 @@ def test_train_writes_run_directory_and_learns(tmp_path):
     # config.yml reloads the run exactly, and load_run gives the trained model back.
     assert load_config(run / "config.yml") == trainer.config
     loaded = load_run(run / "config.yml")
-    config, model, dataset = loaded.config, loaded.model, loaded.dataset
+    model = loaded.model
     assert not model.training and model.features.shape == trainer.model.features.shape
     assert_states_close(final_state(trainer), {k: v for k, v in model.state_dict().items()}, atol=0)
 

@@ -224,3 +224,16 @@ def test_dngc_on_rasterized_plane(disc_tilt, expect_consistent):
                     use_compile=False)
     nc = dngc_losses(out.rgb, out.alpha, out.normal, out.depth_normal, out.distance)["nc"].item()
     assert (nc < 1e-3) if expect_consistent else (nc > 0.3)
+
+
+def test_losses_config_is_the_registry_and_scales_its_own_schedules():
+    from dataclasses import fields
+
+    from hico_plugin.losses import LOSSES
+
+    assert [f.name for f in fields(LossesConfig)] == [name for name, _ in LOSSES.registered()] == ["rgb", "dngc"]
+    losses = LossesConfig().setup(schedule_scale=0.1)
+    dngc = losses.components["dngc"]
+    assert (dngc.start_step, dngc.warmup_steps) == (1000, 1000)
+    assert losses.metrics(1500) == {"dngc_weight": 0.5}
+    assert LossesConfig().setup().components["dngc"].start_step == 10_000

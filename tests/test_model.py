@@ -30,7 +30,7 @@ def _batch(dataset, position=0):
 
 def test_geometry_is_rendered_only_once_dngc_starts(tiny):
     model = _config().setup(dataset=tiny, total_steps=300)
-    t0 = model.dngc_config.start_step
+    t0 = model.losses.components["dngc"].start_step
     assert t0 == 100  # 10k of 30k reference steps, scaled to a 300-step run
     assert model.required_outputs(0) == {"rgb"}
     assert model.required_outputs(t0) == {"rgb"}  # w(t0) = 0: DNGC still off
@@ -43,7 +43,7 @@ def test_geometry_is_rendered_only_once_dngc_starts(tiny):
     assert not any(name.startswith("loss/dngc") for name in early.metrics)
     late = model.train_step(_batch(tiny), t0 + 50)
     assert {"loss/dngc_nc", "loss/dngc_ns", "loss/dngc_ds"} <= set(late.metrics)
-    assert late.metrics["dngc_weight"] == pytest.approx(50 / model.dngc_config.warmup_steps)
+    assert late.metrics["dngc_weight"] == pytest.approx(50 / model.losses.components["dngc"].warmup_steps)
 
 
 def test_dngc_off_never_renders_geometry(tiny):

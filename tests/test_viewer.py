@@ -169,7 +169,7 @@ def test_normals_and_disagreement():
 def test_visualize_every_output_of_the_demo_render():
     model = DemoModel()
     camera = DemoDataset(4).cameras[0].scaled(0.5)
-    outputs = model.viewer_render(camera, RenderOptions())
+    outputs = model.render_for_display(camera, RenderOptions())
     covered = outputs["alpha"][..., 0].numpy() > 0.5
     assert 0.2 < covered.mean() < 1.0  # the sky is not covered
     for name in OUTPUT_NAMES:

@@ -40,7 +40,7 @@ def test_every_output_of_the_real_model_draws(tiny_model):
     # One render with every output any view needs (the model reads only these four fields).
     everything = SimpleNamespace(required_outputs=tuple(sorted(set().union(*REQUIRED_OUTPUTS.values()))),
                                  clca_enabled=True, level_range=None, distance_scale=1.0)
-    outputs = model.viewer_render(camera, everything)
+    outputs = model.render_for_display(camera, everything)
     for name in OUTPUT_NAMES:
         image = visualize(outputs, RenderOptions(output=name, num_levels=num_levels))
         assert image.dtype == np.uint8 and image.shape == (camera.height, camera.width, 3), name

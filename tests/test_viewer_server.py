@@ -127,7 +127,7 @@ def _wait_for(condition, timeout: float = 30.0) -> bool:
 _LOOK_MINUS_Z = (0.0, 1.0, 0.0, 0.0)  # 180 deg about x: camera z forward = world -z
 
 
-def test_viewer_renders_a_browser_camera_and_frees_its_port(capsys):
+def test_render_for_displays_a_browser_camera_and_frees_its_port(capsys):
     port = _free_port()
     state = FakeState(num_cameras=12)
     render = RecordingRender()

@@ -18,7 +18,7 @@ from hico_plugin.viewer import RenderOptions, ViewerConfig, attach_viewer
 class ViewableToy(ToyModel):
     """The engine's toy with the two ViewableModel methods."""
 
-    def viewer_render(self, camera, options: RenderOptions):
+    def render_for_display(self, camera, options: RenderOptions):
         self.lock_held_during_render.append(self.trainer_lock._is_owned())
         return {"rgb": render_blobs(self.features, self.centers, self.mlp, camera, self.sigma)}
 

@@ -28,8 +28,8 @@ from hico_plugin.errors import HicoError
 from hico_plugin.engine import LoadedRun, load_run
 from hico_plugin.export.frames import write_png
 from hico_plugin.mesh.evaluate import surface_results
-from hico_plugin.viewer.options import RenderOptions
-from hico_plugin.viewer.visualize import visualize
+from hico_plugin.visualization.options import RenderOptions
+from hico_plugin.visualization.visualize import visualize
 
 
 @dataclass
@@ -65,7 +65,7 @@ def save_test_renders(run: LoadedRun, render_dir: Path) -> int:
     options = {name: RenderOptions(output=name) for name in ("rgb", "depth", "normal")}
     indices = [int(i) for i in run.dataset.test_indices]
     for index in indices:
-        images = run.model.viewer_render(run.dataset.cameras[index], request)
+        images = run.model.render_for_display(run.dataset.cameras[index], request)
         gt, _ = load_view(run.dataset, index)
         gt_picture = visualize({"rgb": gt}, options["rgb"])
         stem = Path(run.dataset.image_names[index]).with_suffix("").as_posix().replace("/", "_")

@@ -30,7 +30,7 @@ from hico_plugin.export import (
     write_ply,
 )
 from hico_plugin.mesh import MeshExportConfig
-from hico_plugin.viewer.visualize import level_colors
+from hico_plugin.visualization.visualize import level_colors
 
 
 @dataclass

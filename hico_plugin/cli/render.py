@@ -3,7 +3,7 @@
     hico-render --load-config outputs/city-block/hico-gs-lite/config.yml orbit --outputs rgb depth level
     hico-render --load-config RUN/config.yml test --outputs rgb normal depth-normal
 
-Renders at evaluation LOD (every level active) through the model's viewer outputs, one PNG per frame
+Renders at evaluation LOD (every level active) through the model's display outputs (render_for_display), one PNG per frame
 and output in OUTPUT_DIR/<output>/, and OUTPUT_DIR/<output>.mp4 when a video writer is available.
 """
 
@@ -25,8 +25,8 @@ from hico_plugin.errors import HicoError
 from hico_plugin.engine import load_run
 from hico_plugin.export import interpolate_path, orbit_path
 from hico_plugin.export.frames import Mp4Writer, write_png
-from hico_plugin.viewer.options import COLORMAP_NAMES, RenderOptions
-from hico_plugin.viewer.visualize import visualize
+from hico_plugin.visualization.options import COLORMAP_NAMES, RenderOptions
+from hico_plugin.visualization.visualize import visualize
 
 OutputName = Literal["rgb", "depth", "plane-depth", "normal", "depth-normal", "normal-disagreement",
                      "distance", "alpha", "level"]
@@ -34,7 +34,7 @@ OutputName = Literal["rgb", "depth", "plane-depth", "normal", "depth-normal", "n
 
 @dataclass(frozen=True)
 class FrameRequest(RenderOptions):
-    """What ``HiCoModel.viewer_render`` should draw for every frame: several outputs at once, with
+    """What ``HiCoModel.render_for_display`` should draw for every frame: several outputs at once, with
     the viewer's defaults for everything else (the model's own LOD, CLCA as trained)."""
 
     outputs: tuple[str, ...] = ("rgb",)
@@ -107,7 +107,7 @@ def main(args: RenderArgs) -> Path:
     start = time.perf_counter()
     try:
         for i, camera in enumerate(cameras):
-            images = run.model.viewer_render(camera, request)
+            images = run.model.render_for_display(camera, request)
             for name in names:
                 picture = visualize(images, options[name])
                 write_png(output_dir / name / f"{i:05d}.png", picture)

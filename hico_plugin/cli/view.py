@@ -63,7 +63,7 @@ def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any]]:
     if not isinstance(model, ViewableModel):
         raise HicoError(
             f"{args.load_config}: model {type(model).__name__} cannot be viewed "
-            "(it needs viewer_render(camera, options) and viewer_anchors())"
+            "(it needs render_for_display(camera, options) and viewer_anchors())"
         )
     return model, dataset, _eval_stats(args.load_config, getattr(config, "output_dir", None))
 

@@ -45,7 +45,7 @@ def image_header_size(path: Path, what: str) -> tuple[int, int]:
     try:
         with Image.open(path) as image:
             return image.size
-    except (OSError, UnidentifiedImageError, ValueError) as err:
+    except (OSError, UnidentifiedImageError, ValueError):
         raise HicoError(f"{what} {path}: unreadable or truncated image file (no readable PNG/JPEG header)") from None
 
 

@@ -77,7 +77,9 @@ def allowed_config_classes() -> dict[str, type]:
     """Import path -> class of every config class a config.yml may name: the loaded subclasses of
     ``InstantiateConfig`` and the dataclasses / enums their fields hold, transitively."""
     from hico_plugin.config import InstantiateConfig
+    from hico_plugin.registry import load_plugins
 
+    load_plugins()  # installed plug-ins' config classes are loaded classes too
     allowed: dict[str, type] = {}
     stack: list[type] = [InstantiateConfig]
     while stack:

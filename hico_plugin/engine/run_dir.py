@@ -31,7 +31,7 @@ def run_directory(base: Path, timestamp: str, resume: bool) -> Path:
             raise HicoError(f"--timestamp: {timestamp!r} must be a plain folder name")
         return base / timestamp
     if resume:
-        runs = sorted(p.parent for p in base.glob(f"*/config.yml"))
+        runs = sorted(p.parent for p in base.glob("*/config.yml"))
         if not runs:
             raise HicoError(f"--resume: no run under {base} to resume (pass --output-dir RUN)")
         return runs[-1]

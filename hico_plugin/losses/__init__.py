@@ -3,7 +3,7 @@
 ``LossesConfig().setup()`` builds the method's loss set; the model asks it which render outputs a step
 needs and sums the named terms it returns::
 
-    losses = LossesConfig().setup()
+    losses = LossesConfig().setup(schedule_scale=run_steps / reference_steps)
     outputs = rasterize(..., outputs=tuple(losses.required_outputs(step)))
     terms = losses(outputs, target_rgb, step)      # {"rgb_l1": ..., "rgb_dssim": ..., "dngc_nc": ...}
     loss = sum(terms.values())
@@ -11,12 +11,16 @@ needs and sums the named terms it returns::
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+import importlib
+import pkgutil
+from dataclasses import field, fields, make_dataclass
 
 from torch import Tensor
 
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.losses.base import LOSSES, LossComponent, require_images
+# Photometric first: import order is registration order, the order of the config fields and summed terms.
+from hico_plugin.losses.photometric import PhotometricLoss, PhotometricLossConfig, photometric_terms  # isort: skip
 from hico_plugin.losses.dngc import (
     DNGCLoss,
     DNGCLossConfig,
@@ -26,7 +30,6 @@ from hico_plugin.losses.dngc import (
     normal_consistency_loss,
     warmup_weight,
 )
-from hico_plugin.losses.photometric import PhotometricLoss, PhotometricLossConfig, photometric_terms
 from hico_plugin.rasterizer.base import RenderOutputs
 
 
@@ -46,18 +49,30 @@ class Losses:
             terms.update(component(outputs, target, step))
         return terms
 
+    def metrics(self, step: int) -> dict[str, float]:
+        """What the components report about their schedules at ``step`` (e.g. DNGC's w(t))."""
+        out: dict[str, float] = {}
+        for component in self.components.values():
+            out.update(getattr(component, "metrics", lambda step: {})(step))
+        return out
 
-@dataclass
-class LossesConfig(InstantiateConfig):
-    """The method's losses; each field is one registered loss component's config."""
 
-    rgb: PhotometricLossConfig = field(default_factory=PhotometricLossConfig)
-    """Photometric loss."""
-    dngc: DNGCLossConfig = field(default_factory=DNGCLossConfig)
-    """Depth-normal geometric consistency."""
+# Every module of this package registers its loss on import, so a new loss is one file here (after the
+# built-ins imported above).
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
 
-    def setup(self, **kwargs) -> Losses:
-        return Losses({f.name: getattr(self, f.name).setup() for f in fields(self)})
+
+def _setup(self, schedule_scale: float = 1.0, **kwargs) -> Losses:
+    """Build every loss; ``schedule_scale`` (run length / reference length) scales their step schedules."""
+    return Losses({f.name: getattr(self, f.name).setup(schedule_scale=schedule_scale) for f in fields(self)})
+
+
+LossesConfig = make_dataclass(
+    "LossesConfig", [(name, config, field(default_factory=config)) for name, config in LOSSES.registered()],
+    bases=(InstantiateConfig,), namespace={"setup": _setup})
+LossesConfig.__module__ = __name__
+LossesConfig.__doc__ = "The method's losses: one field per registered loss (LOSSES), by its name."
 
 
 __all__ = [

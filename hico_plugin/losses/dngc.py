@@ -111,11 +111,16 @@ class DNGCLoss:
 
     OUTPUTS = frozenset({"rgb", "alpha", "normal", "depth_normal", "distance"})
 
-    def __init__(self, config: "DNGCLossConfig"):
+    def __init__(self, config: "DNGCLossConfig", start_step: int, warmup_steps: int):
         self.config = config
+        self.start_step = start_step  # t0 and T of this run (the config's, scaled to its length)
+        self.warmup_steps = warmup_steps
 
     def warmup(self, step: int) -> float:
-        return warmup_weight(step, self.config.start_step, self.config.warmup_steps) if self.config.enabled else 0.0
+        return warmup_weight(step, self.start_step, self.warmup_steps) if self.config.enabled else 0.0
+
+    def metrics(self, step: int) -> dict[str, float]:
+        return {"dngc_weight": self.warmup(step)}
 
     def required_outputs(self, step: int) -> set[str]:
         return set(self.OUTPUTS) if self.warmup(step) > 0 else set()
@@ -147,14 +152,17 @@ class DNGCLossConfig(InstantiateConfig):
     edge_beta: float = 10.0
     """beta in the edge weight exp(-beta |grad I|) on the rendered RGB."""
     start_step: int = 10_000
-    """t0: the step after which geometry is rendered and DNGC ramps in (CityGS-X's switch, same counter as the trainer)."""
+    """t0: the step after which geometry is rendered and DNGC ramps in (CityGS-X's switch, same counter
+    as the trainer), in reference steps (scaled with the run's length, like every schedule)."""
     warmup_steps: int = 10_000
-    """T: steps of the linear ramp from 0 to full weight after t0 (0 = switch on at once)."""
+    """T: steps of the linear ramp from 0 to full weight after t0 (0 = switch on at once), in reference
+    steps."""
 
-    def setup(self, **kwargs) -> DNGCLoss:
+    def setup(self, schedule_scale: float = 1.0, **kwargs) -> DNGCLoss:
         for name in ("lambda_nc", "lambda_ns", "lambda_ds", "edge_beta"):
             if getattr(self, name) < 0:
                 raise HicoError(f"losses.dngc.{name} must be >= 0, got {getattr(self, name)}")
         if self.start_step < 0 or self.warmup_steps < 0:
             raise HicoError("losses.dngc.start_step and losses.dngc.warmup_steps must be >= 0")
-        return DNGCLoss(self)
+        return DNGCLoss(self, int(round(self.start_step * schedule_scale)),
+                        int(round(self.warmup_steps * schedule_scale)))

@@ -14,7 +14,6 @@ ever allocated.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field as dataclass_field
 from typing import Any
@@ -31,7 +30,6 @@ from hico_plugin.field.decoder import NeuralGaussians
 from hico_plugin.field.field import FieldConfig
 from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_sums
 from hico_plugin.losses import LossesConfig
-from hico_plugin.losses.dngc import warmup_weight
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
 from hico_plugin.model import lod as _lod  # noqa: F401 -- registers the "lod" effect
@@ -96,12 +94,7 @@ class HiCoModel(nn.Module):
                                         num_train_cameras=len(train_ids), total_steps=total_steps)
         self.renderer = config.renderer.setup()
         scale = (total_steps / config.field.reference_steps) if (config.scale_schedules and total_steps) else 1.0
-        dngc = config.losses.dngc
-        losses_config = dataclasses.replace(config.losses, dngc=dataclasses.replace(
-            dngc, start_step=int(round(dngc.start_step * scale)),
-            warmup_steps=int(round(dngc.warmup_steps * scale))))
-        self.dngc_config = losses_config.dngc
-        self.losses = losses_config.setup()
+        self.losses = config.losses.setup(schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
         self.sky = config.sky.setup() if "sky" in on else None
@@ -149,10 +142,10 @@ class HiCoModel(nn.Module):
         """``out.rgb`` (rendered without background) over the sky: rgb + (1 - alpha) * sky, [H,W,3]."""
         return out.rgb + (1.0 - out.alpha) * self.sky(camera)
 
-    # ----- viewer (hico_plugin.viewer.state.ViewableModel) ----------------------------------------
+    # ----- rendering for people (viewer, hico-eval, hico-render; see hico_plugin.visualization) -----
 
     @torch.no_grad()
-    def viewer_render(self, camera: Camera, options: Any) -> dict[str, Tensor]:
+    def render_for_display(self, camera: Camera, options: Any) -> dict[str, Tensor]:
         """The render outputs ``options.required_outputs`` names; "level" is the alpha-normalised
         octree level of the drawn Gaussians, composited as a colour channel."""
         wanted = set(options.required_outputs) - {"level"}
@@ -214,7 +207,7 @@ class HiCoModel(nn.Module):
         count = len(views)
         metrics: dict[str, float | Tensor] = {f"loss/{k}": v / count for k, v in term_sums.items()}
         metrics["psnr"] = sum(psnrs) / count
-        metrics["dngc_weight"] = self.dngc_weight(step)
+        metrics.update(self.losses.metrics(step))
         self.last_num_gaussians = len(views[-1][1])
         return StepOutput(loss=total / count, metrics=metrics, extras={"views": views, "batch_size": count})
 
@@ -275,10 +268,6 @@ class HiCoModel(nn.Module):
         """Non-metric entries of eval.json: which effects were simulated, and why."""
         return {"effects": {name: {"on": c.on, "reason": c.reason} for name, c in self.effect_choices.items()},
                 "headline_psnr": "psnr (raw); psnr_cc = per-view affine colour fit, psnr_nerfw = fit left half, score right"}
-
-    def dngc_weight(self, step: int) -> float:
-        cfg = self.dngc_config
-        return warmup_weight(step, cfg.start_step, cfg.warmup_steps) if cfg.enabled else 0.0
 
     def stats(self) -> dict[str, float]:
         out = self.field.stats()

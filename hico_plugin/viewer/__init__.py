@@ -4,7 +4,7 @@ Public API::
 
     Viewer(config: ViewerConfig, render_fn, state)      # or ViewerConfig(...).setup(render_fn=..., state=...)
     render_fn(camera: Camera, options: RenderOptions) -> np.ndarray uint8 [H, W, 3]
-    model_render_fn(model: ViewableModel) -> render_fn   # model.viewer_render + visualize
+    model_render_fn(model: ViewableModel) -> render_fn   # model.render_for_display + visualize
     RunViewerState(model, dataset)                        # ViewerState; trainer.add_callback(state) to go live
     visualize(outputs, options) -> uint8 [H, W, 3]        # and the colormap / normal helpers
     viser_to_camera(wxyz, position, fov_y, width, height) -> Camera; camera_to_viser(camera)
@@ -17,7 +17,7 @@ Wiring into training (rank 0; the model implements ViewableModel)::
 """
 
 from hico_plugin.viewer.conversions import camera_to_viser, render_size, viser_to_camera
-from hico_plugin.viewer.options import COLORMAP_NAMES, OUTPUT_NAMES, REQUIRED_OUTPUTS, RenderOptions
+from hico_plugin.visualization.options import COLORMAP_NAMES, OUTPUT_NAMES, REQUIRED_OUTPUTS, RenderOptions
 from hico_plugin.viewer.state import (
     RenderFn,
     RunViewerState,
@@ -28,7 +28,7 @@ from hico_plugin.viewer.state import (
 )
 from hico_plugin.viewer.throttle import next_resolution, plan_render
 from hico_plugin.viewer.viewer import Viewer, ViewerConfig, attach_viewer
-from hico_plugin.viewer.visualize import (
+from hico_plugin.visualization.visualize import (
     apply_colormap,
     level_colors,
     normal_disagreement_degrees,

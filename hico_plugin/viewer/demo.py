@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hico_plugin.cameras import Camera, Cameras
-from hico_plugin.viewer.options import RenderOptions
+from hico_plugin.visualization.options import RenderOptions
 
 _SPHERES = torch.tensor(  # x, y, z, radius, level, r, g, b
     [
@@ -54,7 +54,7 @@ def orbit_cameras(count: int, radius: float = 7.0, height: float = 3.0, width: i
 class DemoModel:
     """Ray-cast render of four spheres on a ground plane; anchors sampled on the surfaces."""
 
-    def viewer_render(self, camera: Camera, options: RenderOptions) -> dict[str, Tensor]:
+    def render_for_display(self, camera: Camera, options: RenderOptions) -> dict[str, Tensor]:
         height, width = camera.height, camera.width
         rows, cols = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
         K = camera.K.float()
@@ -141,5 +141,5 @@ class DemoDataset:
         self._model = DemoModel()
 
     def image(self, index: int) -> Tensor:
-        rgb = self._model.viewer_render(self.cameras[index], RenderOptions())["rgb"]
+        rgb = self._model.render_for_display(self.cameras[index], RenderOptions())["rgb"]
         return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)

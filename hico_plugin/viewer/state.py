@@ -4,7 +4,7 @@ Two protocols make the boundary:
 
 ``ViewableModel`` — what a model offers the viewer (HiCoModel implements it)::
 
-    viewer_render(camera: Camera, options: RenderOptions) -> Mapping[str, Tensor]
+    render_for_display(camera: Camera, options: RenderOptions) -> Mapping[str, Tensor]
         # at least options.required_outputs, RenderOutputs names and shapes (rgb [H,W,3],
         # depth / plane_depth / distance / alpha / level [H,W,1], normal / depth_normal [H,W,3]),
         # honouring options.level_range, options.distance_scale and options.clca_enabled; called
@@ -32,8 +32,8 @@ import torch
 from torch import Tensor
 
 from hico_plugin.cameras import Camera, Cameras
-from hico_plugin.viewer.options import RenderOptions
-from hico_plugin.viewer.visualize import visualize
+from hico_plugin.visualization.options import RenderOptions
+from hico_plugin.visualization.visualize import visualize
 
 RenderFn = Callable[[Camera, RenderOptions], np.ndarray]
 """render_fn(camera, options) -> uint8 [H, W, 3] picture of ``options.output`` seen by ``camera``."""
@@ -41,7 +41,7 @@ RenderFn = Callable[[Camera, RenderOptions], np.ndarray]
 
 @runtime_checkable
 class ViewableModel(Protocol):
-    def viewer_render(self, camera: Camera, options: RenderOptions) -> Mapping[str, Tensor]: ...
+    def render_for_display(self, camera: Camera, options: RenderOptions) -> Mapping[str, Tensor]: ...
 
     def viewer_anchors(self) -> tuple[Tensor, Tensor]: ...
 
@@ -112,7 +112,7 @@ def model_render_fn(model: ViewableModel) -> RenderFn:
 
     def render(camera: Camera, options: RenderOptions) -> np.ndarray:
         with torch.no_grad():
-            outputs = model.viewer_render(camera, options)
+            outputs = model.render_for_display(camera, options)
         return visualize(outputs, options)
 
     return render

@@ -23,7 +23,7 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer.conversions import camera_to_viser, render_size, viser_to_camera
 from hico_plugin.viewer.lookup_overlay import parent_found_colors, read_parent_found
-from hico_plugin.viewer.options import COLORMAP_NAMES, OUTPUT_NAMES, RenderOptions
+from hico_plugin.visualization.options import COLORMAP_NAMES, OUTPUT_NAMES, RenderOptions
 from hico_plugin.viewer.state import (
     RenderFn,
     RunViewerState,
@@ -35,7 +35,7 @@ from hico_plugin.viewer.state import (
 )
 from hico_plugin.viewer.stats_panel import format_stats_markdown, plot_series
 from hico_plugin.viewer.throttle import RenderKind, next_resolution, plan_render, refresh_interval
-from hico_plugin.viewer.visualize import level_colors
+from hico_plugin.visualization.visualize import level_colors
 
 logger = logging.getLogger(__name__)
 
@@ -534,7 +534,7 @@ def attach_viewer(trainer: Any, config: ViewerConfig) -> Viewer:
     if not isinstance(trainer.model, ViewableModel):
         raise HicoError(
             f"vis: model {type(trainer.model).__name__} cannot be viewed "
-            "(it needs viewer_render(camera, options) and viewer_anchors()); use --vis none"
+            "(it needs render_for_display(camera, options) and viewer_anchors()); use --vis none"
         )
     state = RunViewerState(trainer.model, trainer.dataset)
     state.attach(trainer)

@@ -1,4 +1,5 @@
-"""What the viewer asks a render function for: the output to show and how to show it."""
+"""What a person asks a render for (in the viewer, hico-eval or hico-render): the output to show and
+how to show it."""
 
 from __future__ import annotations
 

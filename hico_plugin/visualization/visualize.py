@@ -16,7 +16,7 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
-from hico_plugin.viewer.options import RenderOptions
+from hico_plugin.visualization.options import RenderOptions
 
 _CV2_COLORMAPS = {
     "turbo": cv2.COLORMAP_TURBO,
