@@ -177,7 +177,8 @@ class Viewer:
 
     def serve_forever(self) -> None:
         """Block until Ctrl-C (for ``hico-view``), then stop."""
-        try:
+        try:  # the hint is printed inside: a Ctrl-C right after reading it must still stop cleanly
+            print("viewer: Ctrl-C to stop", flush=True)
             while not self.worker.stopping.wait(1.0):
                 pass
         except KeyboardInterrupt:
