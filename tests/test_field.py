@@ -15,6 +15,7 @@ from hico_plugin.field import (
     AnchorField, ContextConfig, DecoderConfig, DensifyConfig, FieldConfig, OctreeBuildConfig, OctreeGrid)
 from hico_plugin.field.lod import progressive_interval_ends
 from hico_plugin.field.octree import build_octree, distance_range
+from hico_plugin.model.hico import default_optimizers
 
 K = torch.tensor([[100.0, 0.0, 64.0], [0.0, 100.0, 48.0], [0.0, 0.0, 1.0]])
 
@@ -205,13 +206,15 @@ def test_decoder_outputs_and_opacity_mask():
             assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in params), name
 
 
-def test_default_lrs_cover_every_group():
+def test_default_optimizers_cover_every_group():
     field = make_field(decoder=DecoderConfig(appearance_dim=4))
-    lrs = field.default_lrs(spatial_lr_scale=2.0)
-    assert set(lrs) == set(field.param_groups())
-    assert lrs["anchor"] == pytest.approx((3.2e-4, 3.2e-6)) and lrs["clca"] == lrs["mlp_color"]
-    frozen = make_field(train_anchor_positions=False, context=ContextConfig(kind="none"))
-    assert frozen.default_lrs(1.0)["anchor"][0] == 0.0 and "clca" not in frozen.param_groups()
+    assert set(field.param_groups()) <= set(default_optimizers())
+    assert "clca" not in make_field(context=ContextConfig(kind="none")).param_groups()
+
+
+def field_schedules(field) -> dict[str, LRSchedule]:
+    """The model's default schedules for the field's groups (scene extent 1, 30k steps)."""
+    return {name: default_optimizers()[name].schedule(30_000) for name in field.param_groups()}
 
 
 def test_accumulate_stats_sums_per_offset():
@@ -295,9 +298,7 @@ def test_growing_and_pruning_on_a_hand_built_case():
 
 def test_densify_result_drives_optimizer_resize_and_resume():
     field = grow_prune_case()
-    schedules = {name: LRSchedule(lr_init=lr, lr_final=final)
-                 for name, (lr, final) in field.default_lrs(1.0).items()}
-    optimizers = Optimizers(field.param_groups(), schedules)
+    optimizers = Optimizers(field.param_groups(), field_schedules(field))
     field.anchor_features.sum().mul(0).add(field.anchor_features[0].sum()).backward()
     optimizers.step(0)
     old_moment = optimizers.optimizers["anchor_feat"].state[field.anchor_features]["exp_avg"].clone()
@@ -334,8 +335,7 @@ def test_training_loop_with_the_rasterizer_grows_and_stays_finite():
     densify = DensifyConfig(start_step=2, interval=2, grad_threshold=1e-5)
     field = FieldConfig(progressive=False, densify=densify).setup(
         points=next(point_clouds())[0][:400], train_cameras=cameras, total_steps=30_000)
-    schedules = {name: LRSchedule(lr, final) for name, (lr, final) in field.default_lrs(1.0).items()}
-    optimizers = Optimizers(field.param_groups(), schedules)
+    optimizers = Optimizers(field.param_groups(), field_schedules(field))
     target = torch.full((24, 32, 3), 0.7)
     losses, grown = [], 0
     for step in range(1, 6):

@@ -8,6 +8,7 @@ import torch
 
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.engine.protocol import TrainBatch
+from hico_plugin.errors import HicoError
 from hico_plugin.model import HiCoModelConfig
 from hico_plugin.rasterizer.renderer import RendererConfig
 
@@ -52,6 +53,23 @@ def test_dngc_off_never_renders_geometry(tiny):
         config.losses, dngc=dataclasses.replace(config.losses.dngc, enabled=False)))
     model = config.setup(dataset=tiny, total_steps=300)
     assert model.required_outputs(10_000) == {"rgb"}
+
+
+def test_learning_rates_come_from_the_optimizers_config(tiny):
+    from hico_plugin.engine.optimizers import Optimizers
+
+    config = _config()
+    config.optimizers["mlp_color"] = dataclasses.replace(config.optimizers["mlp_color"], lr_init=0.01)
+    model = config.setup(dataset=tiny, total_steps=100)
+    optimizers = Optimizers(model.param_groups(), model.lr_schedules(100))
+    assert optimizers.optimizers["mlp_color"].param_groups[0]["lr"] == 0.01
+    assert optimizers.set_lrs(100)["mlp_color"] == pytest.approx(5e-5)  # decays to the config's lr_final
+    # World-unit groups follow the scene extent; an unknown group is named, not guessed.
+    extent = model.spatial_lr_scale
+    assert optimizers.set_lrs(0)["offset"] == pytest.approx(0.01 * extent) and extent != 1.0
+    del config.optimizers["scaling"]
+    with pytest.raises(HicoError, match="model.optimizers: no entry for parameter group.*scaling"):
+        model.lr_schedules(100)
 
 
 def test_short_training_run_learns_with_clca_and_dngc(tiny):

@@ -24,3 +24,12 @@ def test_configs_equal_the_resolved_presets(tmp_path):
 def test_configs_load_back_as_the_presets():
     for path in CONFIGS.glob("*.yml"):
         assert load_config(path) == PRESETS[path.stem][1], path.name
+
+
+def test_a_learning_rate_is_a_command_line_override():
+    from hico_plugin.cli.train import parse
+
+    config = parse(["hico-gs-lite", "--model.optimizers.mlp_color.lr-init", "0.01"])
+    assert config.model.optimizers["mlp_color"].lr_init == 0.01
+    assert config.model.optimizers["mlp_color"].lr_final == PRESETS["hico-gs-lite"][1].model.optimizers["mlp_color"].lr_final
+    assert parse(["hico-gs-lite"]).model.optimizers["mlp_color"].lr_init == 0.008  # the preset is not edited

@@ -61,7 +61,7 @@ def test_server_renders_a_training_view_through_the_model(tiny_model):
         assert _wait_for(lambda: viewer.render_count >= 1 and viewer.last_image.shape[1] == 96 or viewer.last_error is not None, 60)
         assert viewer.last_error is None
         assert viewer.last_image.std() > 1.0  # the scene, not a flat background
-        assert viewer._num_levels == int(model.viewer_anchors()[1].max()) + 1
+        assert viewer.scene.num_levels == int(model.viewer_anchors()[1].max()) + 1
     finally:
         client.close()
         viewer.stop()

@@ -137,8 +137,8 @@ def test_render_for_displays_a_browser_camera_and_frees_its_port(capsys):
         assert viewer.port == port and viewer.url == f"http://localhost:{port}"
         printed = capsys.readouterr().out
         assert f"http://localhost:{port}" in printed and f"ssh -L {port}:localhost:{port}" in printed
-        assert len(viewer._frustums) == 5 and viewer._num_levels == 3
-        assert _wait_for(lambda: state.thumbnails_read == [0, 1, 2, 3, 4] and viewer._frustums[-1].image is not None)
+        assert len(viewer.scene.frustums) == 5 and viewer.scene.num_levels == 3
+        assert _wait_for(lambda: state.thumbnails_read == [0, 1, 2, 3, 4] and viewer.scene.frustums[-1].image is not None)
         client = ProtocolClient(port)
         client.send_camera(_LOOK_MINUS_Z, (0.5, 0.0, 4.0), fov=0.8, width=400, height=200)
         assert _wait_for(lambda: viewer.render_count >= 1 and render.calls[-1][0].width == 256)
@@ -150,7 +150,7 @@ def test_render_for_displays_a_browser_camera_and_frees_its_port(capsys):
         assert options == viewer.render_options() and options.output == "rgb" and options.clca_enabled
         assert viewer.last_image.shape == (128, 256, 3)
         # A GUI change re-renders with the new options.
-        viewer._output.value = "depth"
+        viewer.gui.output.value = "depth"
         assert _wait_for(lambda: render.calls[-1][1].output == "depth")
     finally:
         if client is not None:
@@ -193,12 +193,12 @@ def test_render_errors_are_reported_and_rendering_goes_on():
     try:
         client.send_camera(_LOOK_MINUS_Z, (0.0, 0.0, 4.0))
         assert _wait_for(lambda: viewer.last_error is not None)
-        assert "model exploded" in viewer.last_error and "model exploded" in viewer._render_status.content
-        assert viewer._thread.is_alive()
+        assert "model exploded" in viewer.last_error and "model exploded" in viewer.gui.render_status.content
+        assert viewer.worker.thread.is_alive()
         render.fail = False  # the model recovered: the next camera move renders again
         client.send_camera(_LOOK_MINUS_Z, (0.0, 0.2, 4.0))
         assert _wait_for(lambda: viewer.render_count >= 1 and viewer.last_error is None)
-        assert viewer._thread.is_alive()
+        assert viewer.worker.thread.is_alive()
     finally:
         client.close()
         viewer.stop()

@@ -43,20 +43,20 @@ def test_viewer_follows_and_controls_a_training_run(tmp_path):
         client.send_camera((0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 2.0))
         assert _wait_for(lambda: viewer.render_count >= 2 and trainer.step > 20)
         assert all(model.lock_held_during_render)  # every render ran under the trainer's lock
-        assert _wait_for(lambda: "| step |" in viewer._stats_text.content and viewer._plot is not None)
-        assert "loss" in viewer._plot_names and not viewer._pause.disabled
+        assert _wait_for(lambda: "| step |" in viewer.gui.stats_text.content and viewer.stats.plot is not None)
+        assert "loss" in viewer.stats.plot_names and not viewer.gui.pause.disabled
 
-        viewer._toggle_pause()
-        assert trainer.is_paused and viewer._pause.label == "Resume training"
+        viewer.toggle_pause()
+        assert trainer.is_paused and viewer.gui.pause.label == "Resume training"
         time.sleep(0.2)  # a step in flight may still finish
         paused_at = trainer.step
         time.sleep(0.3)
         assert trainer.step == paused_at
-        viewer._toggle_pause()
+        viewer.toggle_pause()
         assert not trainer.is_paused
         assert _wait_for(lambda: trainer.step > paused_at)
 
-        viewer._request_checkpoint(None)
+        viewer.request_checkpoint(None)
         assert _wait_for(lambda: any((tmp_path / "run" / "checkpoints").glob("*.ckpt")))
     finally:
         trainer.request_stop()

@@ -72,7 +72,6 @@ def main(args: ViewArgs) -> None:
     model, dataset, stats = load_viewable_run(args)
     state = RunViewerState(model, dataset, stats=stats)
     viewer = args.viewer.setup(render_fn=model_render_fn(model), state=state)
-    print("viewer: Ctrl-C to stop", flush=True)
     viewer.serve_forever()
 
 

@@ -5,6 +5,7 @@ Public API (see each module for details)::
     TrainerConfig(...).setup(model=..., dataset=..., callbacks=[...]) -> Trainer; Trainer.train()
     load_run(config_path, checkpoint=None, device=None) -> LoadedRun (config, model, dataset, checkpoint, run_dir)
     Optimizers(param_groups, schedules); Optimizers.resize_group(name, new_params, kept_rows, num_new)
+    ParamGroupOptimizerConfig(lr_init, lr_final, ...).schedule(max_steps, extent) -> LRSchedule
     save_config(config, path) / load_config(path)
     distributed: is_main_process(), all_reduce_sum_(t), all_reduce_mean_(t), get_rank(), get_world_size()
 """
@@ -13,7 +14,7 @@ from hico_plugin.engine.callbacks import TrainerCallback
 from hico_plugin.engine.config_io import load_config, save_config
 from hico_plugin.engine.distributed import all_reduce_mean_, all_reduce_sum_, is_main_process
 from hico_plugin.engine.evaluation import evaluate, write_eval_json
-from hico_plugin.engine.optimizers import Optimizers
+from hico_plugin.engine.optimizers import Optimizers, ParamGroupOptimizerConfig
 from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainableModel, TrainBatch, TrainDataset
 from hico_plugin.engine.loading import LoadedRun, load_run
 from hico_plugin.engine.trainer import Trainer, TrainerConfig, TrainResult
@@ -22,6 +23,7 @@ __all__ = [
     "LoadedRun",
     "LRSchedule",
     "Optimizers",
+    "ParamGroupOptimizerConfig",
     "StepOutput",
     "TrainBatch",
     "TrainDataset",

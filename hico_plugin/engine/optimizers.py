@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -11,6 +12,25 @@ from hico_plugin.engine.protocol import LRSchedule
 from hico_plugin.errors import HicoError
 
 ADAM_EPS = 1e-15
+
+
+@dataclass
+class ParamGroupOptimizerConfig:
+    """Adam learning-rate schedule of one parameter group (an entry of a model's ``optimizers``)."""
+
+    lr_init: float = 1e-3
+    """Learning rate at the start (after the warm-up); 0 freezes the group."""
+    lr_final: float | None = None
+    """Learning rate reached at the end of training by log-linear decay; None keeps lr_init."""
+    warmup_steps: int = 0
+    """Steps of linear warm-up from 0 to lr_init."""
+    scale_by_extent: bool = False
+    """Multiply both learning rates by the scene extent (for parameters in world units)."""
+
+    def schedule(self, max_steps: int, extent: float = 1.0) -> LRSchedule:
+        scale = extent if self.scale_by_extent else 1.0
+        lr_final = None if self.lr_final is None else self.lr_final * scale
+        return LRSchedule(self.lr_init * scale, lr_final, max_steps, self.warmup_steps)
 
 
 class Optimizers:

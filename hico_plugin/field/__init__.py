@@ -4,7 +4,7 @@
     visible_ids = field.select(camera, step)
     gaussians = field.decode(camera, visible_ids)      # NeuralGaussians
 
-See field.py for the training-side API (param_groups, default_lrs, accumulate_stats, densify).
+See field.py for the training-side API (param_groups, accumulate_stats, densify).
 """
 
 from hico_plugin.field.context import (

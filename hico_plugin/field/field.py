@@ -207,26 +207,6 @@ class AnchorField(nn.Module):
             groups["appearance"] = list(self.decoder.appearance.parameters())
         return groups
 
-    def default_lrs(self, spatial_lr_scale: float) -> dict[str, tuple[float, float | None]]:
-        """(lr_init, lr_final) per group (CityGS-X, algorithm_spec.md §5.2); None = constant.
-
-        The decay runs over the schedule's max_steps (the model's choice). The CLCA MLP follows the
-        colour MLP's schedule (paper Sec. 4.1).
-        """
-        anchor_lr = 1.6e-4 if self.config.train_anchor_positions else 0.0
-        lrs: dict[str, tuple[float, float | None]] = {
-            "anchor": (anchor_lr * spatial_lr_scale, anchor_lr * 1e-2 * spatial_lr_scale or None),
-            "offset": (0.01 * spatial_lr_scale, 1e-4 * spatial_lr_scale),
-            "anchor_feat": (0.0075, None),
-            "scaling": (0.007, None),
-            "mlp_opacity": (0.002, 2e-5),
-            "mlp_cov": (0.004, None),
-            "mlp_color": (0.008, 5e-5),
-            "clca": (0.008, 5e-5),
-            "appearance": (0.05, 5e-4),
-        }
-        return {name: lrs[name] for name in self.param_groups()}
-
     @torch.no_grad()
     def accumulate_stats(self, gaussians: NeuralGaussians, means2d_grad: Tensor, radii: Tensor,
                          camera: Camera, step: int) -> None:

@@ -24,7 +24,6 @@ class AffineColour(nn.Module):
     """rgb' = rgb @ A[slot]^T + b[slot] for training slot ``slot`` (identity for slot < 0)."""
 
     finding = "exposure"
-    lr = (2e-3, 1e-4)  # Adam, init -> final: settles a 0.35-stop gain within a few hundred steps
 
     def __init__(self, num_train_views: int):
         super().__init__()

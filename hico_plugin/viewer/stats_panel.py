@@ -1,4 +1,4 @@
-"""Text of the stats panel and the series of the loss / PSNR plot (pure functions)."""
+"""The stats panel: its text and the loss / PSNR plot series (pure functions), and the panel that shows them."""
 
 from __future__ import annotations
 
@@ -67,3 +67,37 @@ def plot_series(history: Mapping[str, np.ndarray], names: Sequence[str] = ("loss
         first = values[finite][0]
         series[name] = np.where(last_finite >= 0, values[np.maximum(last_finite, 0)], first)
     return steps, series
+
+
+_PLOT_COLORS = {"loss": "#d9480f", "psnr": "#1c7ed6"}
+
+
+class StatsPanel:
+    """The stats markdown and the training plot in the viewer's "Stats" folder."""
+
+    def __init__(self, gui_api: Any, folder: Any, text: Any):
+        self.gui_api, self.folder, self.text = gui_api, folder, text
+        self.plot: Any = None
+        self.plot_names: tuple[str, ...] = ()
+
+    def update(self, stats: Mapping[str, Any], history: Mapping[str, np.ndarray],
+               anchors_per_level: np.ndarray) -> None:
+        self.text.content = format_stats_markdown(stats, anchors_per_level)
+        steps, series = plot_series(history)
+        if len(steps) < 2 or not series:
+            return
+        names = tuple(series)
+        data = (steps, *series.values())
+        if names == self.plot_names:
+            self.plot.data = data
+            return
+        if self.plot is not None:  # a series appeared (e.g. PSNR): new plot layout
+            self.plot.remove()
+        self.plot_names = names
+        with self.folder:
+            self.plot = self.gui_api.add_uplot(
+                data,
+                ({"label": "step"}, *({"label": n, "stroke": _PLOT_COLORS.get(n, "#495057"), "scale": n} for n in names)),
+                axes=({}, *({"scale": n, "side": 3 if i == 0 else 1, "label": n} for i, n in enumerate(names))),
+                aspect=1.6,
+            )
