@@ -23,10 +23,11 @@ ENV = {**os.environ, "HICO_NO_FUSED": os.environ.get("HICO_NO_FUSED", "1")}
 BIN = Path(sys.executable).parent
 
 
-def run(args, cwd=None, env=None, timeout=900):
+def run(args, cwd=None, env=None, timeout=900, pick=""):
+    """Exit code, the last stderr line (the last one holding ``pick``), seconds, the finished process."""
     start = time.perf_counter()
     done = subprocess.run(args, capture_output=True, text=True, cwd=cwd, env=env or ENV, timeout=timeout)
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    lines = [line for line in done.stderr.splitlines() if line.strip() and pick in line]
     if not lines:
         lines = [line for line in done.stdout.splitlines() if line.strip()] or [""]
     return done.returncode, lines[-1], time.perf_counter() - start, done
@@ -79,7 +80,7 @@ def main(work: Path) -> None:
               " 64, 48, compositor='fused', use_compile=False)\nprint('rendered')\n")
     env = {k: v for k, v in ENV.items() if k != "HICO_NO_FUSED"}
     env["HICO_KERNEL_DIR"] = str(kernels)
-    result = run([sys.executable, "-c", render], env=env)
+    result = run([sys.executable, "-c", render], env=env, pick="stale")
     row("stale kernel build lock (killed build), then a render", result, f"; rendered: {'rendered' in result[3].stdout}")
 
     compiler = work / "hung-c++"
@@ -174,7 +175,7 @@ def disk_full_rows(work: Path, run_dir: Path) -> None:
                             f"size={int(others + 1.5 * checkpoint) // 1024 + 1}k"), ("read-only output (ro mount)", "ro")):
         mount = work / f"mnt_{options[:4]}"
         mount.mkdir(exist_ok=True)
-        if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mount)]).returncode:
+        if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mount)], check=False).returncode:
             if "ro" != options:
                 continue
             mount.chmod(0o555)
@@ -184,7 +185,7 @@ def disk_full_rows(work: Path, run_dir: Path) -> None:
             ckpts = sorted(p.name for p in (mount / "run" / "checkpoints").iterdir()) if (mount / "run" / "checkpoints").is_dir() else []
             row(f"{label}, hico-train", result, f"; checkpoints kept: {ckpts}")
         finally:
-            subprocess.run(["umount", str(mount)], capture_output=True)
+            subprocess.run(["umount", str(mount)], capture_output=True, check=False)
 
 
 if __name__ == "__main__":

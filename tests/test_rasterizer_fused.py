@@ -205,7 +205,8 @@ def test_hung_kernel_build_is_killed_and_a_render_finishes(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "HICO_NO_FUSED"}
     env.update(HICO_KERNEL_DIR=str(tmp_path / "kernels"), CXX=str(compiler), HICO_KERNEL_BUILD_TIMEOUT="4")
     start = time.monotonic()
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env,
+                          check=False)
     assert done.returncode == 0, done.stderr
     assert "rendered" in done.stdout and float(done.stdout.split()[-1]) > 0.9
     fallback = [line for line in done.stderr.splitlines() if "could not be built" in line]

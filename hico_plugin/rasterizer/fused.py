@@ -4,9 +4,9 @@ loader (needs a C++ compiler, as torch.compile on CPU does).
 The build folder is private to this package version, torch version, kernel source and build flags
 (``$HICO_KERNEL_DIR`` or ``~/.cache/hico_plugin/kernels/<key>``), so checkouts and versions never
 share torch's build lock. Builders take an ``flock`` first (the kernel drops it when a builder dies);
-whoever holds it knows a leftover torch lock file is stale and removes it with a warning. The build
-itself runs in a child process bounded by ``BUILD_TIMEOUT_SECONDS`` (a hung compiler is killed), and
-the finished module is then imported in-process. A build that fails, times out or cannot start
+whoever holds it knows a leftover torch lock file is stale and removes it, saying so in one line.
+The build itself runs in a child process bounded by ``BUILD_TIMEOUT_SECONDS`` (a hung compiler is
+killed), and the finished module is then imported in-process. A build that fails, times out or cannot start
 within ``BUILD_WAIT_SECONDS`` falls back to the torch compositor with one line, so no command waits
 silently.
 
@@ -28,7 +28,6 @@ import signal
 import subprocess
 import sys
 import time
-import warnings
 from pathlib import Path
 from types import ModuleType
 
@@ -121,7 +120,8 @@ def _build(folder: Path) -> ModuleType:
                 time.sleep(0.5)
         torch_lock = folder / "lock"  # torch's FileBaton: no live builder holds it while we hold the flock
         if torch_lock.exists():
-            warnings.warn(f"removing the stale kernel build lock {torch_lock} (its builder is gone)")
+            print(f"hico: removing the stale kernel build lock {torch_lock} (its builder is gone)",
+                  file=sys.stderr, flush=True)
             torch_lock.unlink(missing_ok=True)
         marker = folder / BUILT_MARKER
         if not marker.is_file():
