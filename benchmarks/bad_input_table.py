@@ -23,10 +23,11 @@ ENV = {**os.environ, "HICO_NO_FUSED": os.environ.get("HICO_NO_FUSED", "1")}
 BIN = Path(sys.executable).parent
 
 
-def run(args, cwd=None, env=None, timeout=900):
+def run(args, cwd=None, env=None, timeout=900, pick=""):
+    """Exit code, the last stderr line (the last one holding ``pick``), seconds, the finished process."""
     start = time.perf_counter()
     done = subprocess.run(args, capture_output=True, text=True, cwd=cwd, env=env or ENV, timeout=timeout)
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    lines = [line for line in done.stderr.splitlines() if line.strip() and pick in line]
     if not lines:
         lines = [line for line in done.stdout.splitlines() if line.strip()] or [""]
     return done.returncode, lines[-1], time.perf_counter() - start, done
@@ -79,8 +80,17 @@ def main(work: Path) -> None:
               " 64, 48, compositor='fused', use_compile=False)\nprint('rendered')\n")
     env = {k: v for k, v in ENV.items() if k != "HICO_NO_FUSED"}
     env["HICO_KERNEL_DIR"] = str(kernels)
-    result = run([sys.executable, "-c", render], env=env)
+    result = run([sys.executable, "-c", render], env=env, pick="stale")
     row("stale kernel build lock (killed build), then a render", result, f"; rendered: {'rendered' in result[3].stdout}")
+
+    compiler = work / "hung-c++"
+    compiler.write_text("#!/bin/sh\nexec sleep 600\n")
+    compiler.chmod(0o755)
+    shutil.rmtree(kernels, ignore_errors=True)
+    env.update(CXX=str(compiler), HICO_KERNEL_BUILD_TIMEOUT="10")
+    result = run([sys.executable, "-c", render.replace("compositor='fused', ", "")], env=env)
+    row("compiler hangs during the first-use build (timeout set to 10 s), then a render", result,
+        f"; rendered: {'rendered' in result[3].stdout}")
 
     sig_dir = work / "sigterm"
     shutil.rmtree(sig_dir, ignore_errors=True)
@@ -110,7 +120,7 @@ def main(work: Path) -> None:
     row("newest checkpoint random bytes, hico-eval", run([BIN / "hico-eval", "--load-config", str(config), "--output-path", str(work / "eval_r.json")]))
     bad.unlink()
 
-    row("unwritable output (eval.json under /dev/full), hico-eval", run([BIN / "hico-eval", "--load-config", str(config), "--output-path", "/dev/full/eval.json"]))
+    disk_full_rows(work, run_dir)
 
     two = work / "two"
     shutil.rmtree(two, ignore_errors=True)
@@ -150,6 +160,32 @@ def main(work: Path) -> None:
     import numpy as np
     cv2.imwrite(str(data2 / "images" / names[2]), np.zeros((30, 43, 3), np.uint8))
     row("image size disagrees with camera, hico-inspect", run([BIN / "hico-inspect", str(data2)]))
+
+
+def disk_full_rows(work: Path, run_dir: Path) -> None:
+    """Training into a tmpfs with room for the first checkpoint but not the second (disk full), and
+    into a read-only mount. Mounting needs root, and root ignores a chmod 555 directory, so a
+    non-root user gets the read-only case as a chmod 555 directory and no disk-full row."""
+    files = [f for f in run_dir.rglob("*") if f.is_file()]
+    checkpoint = max(f.stat().st_size for f in files if f.suffix == ".ckpt")
+    others = sum(f.stat().st_size for f in files if f.suffix != ".ckpt")
+    train = [BIN / "hico-train", "hico-gs-lite", "--scene", "tiny", "--max-steps", "4", "--save-every", "2",
+             "--vis", "none", "--progress", "none", "--output-dir"]
+    for label, options in ((f"output disk full while saving (tmpfs of {(others + 1.5 * checkpoint) / 1024:.0f} kB)",
+                            f"size={int(others + 1.5 * checkpoint) // 1024 + 1}k"), ("read-only output (ro mount)", "ro")):
+        mount = work / f"mnt_{options[:4]}"
+        mount.mkdir(exist_ok=True)
+        if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mount)], check=False).returncode:
+            if "ro" != options:
+                continue
+            mount.chmod(0o555)
+            label = "read-only output (chmod 555 directory)"
+        try:
+            result = run(train + [str(mount / "run")])
+            ckpts = sorted(p.name for p in (mount / "run" / "checkpoints").iterdir()) if (mount / "run" / "checkpoints").is_dir() else []
+            row(f"{label}, hico-train", result, f"; checkpoints kept: {ckpts}")
+        finally:
+            subprocess.run(["umount", str(mount)], capture_output=True, check=False)
 
 
 if __name__ == "__main__":

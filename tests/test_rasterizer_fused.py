@@ -141,10 +141,16 @@ def test_fused_binning_of_nothing():
     assert (bins.tile_offsets == 0).all()
 
 
-def test_build_dir_is_private_to_version_torch_and_source():
+def test_build_dir_is_private_to_version_torch_source_and_flags(monkeypatch, tmp_path):
     name = fused_module.build_dir().name
     assert name.startswith("hico-0.") and torch.__version__.replace("+", "-") in name
-    assert name.endswith(__import__("hashlib").sha256(fused_module.SOURCE.read_bytes()).hexdigest()[:12])
+    monkeypatch.setattr(fused_module, "BUILD_FLAGS", {**fused_module.BUILD_FLAGS, "extra_cflags": ["-O2"]})
+    other_flags = fused_module.build_dir().name
+    edited = tmp_path / "composite_cpu.cpp"
+    edited.write_bytes(fused_module.SOURCE.read_bytes() + b"\n")
+    monkeypatch.setattr(fused_module, "SOURCE", edited)
+    other_source = fused_module.build_dir().name
+    assert len({name, other_flags, other_source}) == 3
 
 
 def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
@@ -172,3 +178,44 @@ def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "rendered" in done.stdout and "removing the stale kernel build lock" in done.stderr
     assert not (kernel_dir / "lock").exists()
+
+
+def test_hung_kernel_build_is_killed_and_a_render_finishes(tmp_path):
+    """A compiler that never returns: the first-use build is killed after $HICO_KERNEL_BUILD_TIMEOUT
+    (compiler included), one line says so, and the render finishes with the torch compositor."""
+    import os
+    import stat
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    pid_file = tmp_path / "compiler.pid"
+    compiler = tmp_path / "hung-c++"
+    compiler.write_text(f"#!/bin/sh\necho $$ > {pid_file}\nexec sleep 600\n")
+    compiler.chmod(compiler.stat().st_mode | stat.S_IEXEC)
+    script = (
+        "import torch\n"
+        "from hico_plugin.rasterizer import rasterize\n"
+        "out = rasterize(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1),"
+        " torch.ones(1), torch.ones(1, 3), torch.eye(4), torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]]),"
+        " 64, 48, use_compile=False)\n"
+        "print('rendered', float(out.rgb.max()))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "HICO_NO_FUSED"}
+    env.update(HICO_KERNEL_DIR=str(tmp_path / "kernels"), CXX=str(compiler), HICO_KERNEL_BUILD_TIMEOUT="4")
+    start = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    assert "rendered" in done.stdout and float(done.stdout.split()[-1]) > 0.9
+    fallback = [line for line in done.stderr.splitlines() if "could not be built" in line]
+    assert len(fallback) == 1 and "did not finish within 4 s" in fallback[0], done.stderr
+    assert time.monotonic() - start < 60
+    assert pid_file.is_file()  # the compiler did start, so it was the build that hung ...
+    status = Path(f"/proc/{int(pid_file.read_text())}/status")
+    deadline = time.monotonic() + 10  # ... and it was killed with the build (gone, or a zombie)
+    while status.is_file() and "State:\tZ" not in status.read_text() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not status.is_file() or "State:\tZ" in status.read_text()
+    assert not (tmp_path / "kernels" / "lock").exists() and not (tmp_path / "kernels" / "hico-built").exists()

@@ -63,6 +63,29 @@ def test_checkpoint_write_error_is_one_line_and_keeps_earlier(tmp_path, monkeypa
     assert [p.name for p in folder.iterdir()] == [first.name]  # no temp file left, the earlier one intact
 
 
+def test_disk_filling_up_inside_torch_save_is_one_line(tmp_path, monkeypatch):
+    """The real torch.save on a file that runs out of space mid-write: torch reports "unexpected pos"
+    (a RuntimeError) and the disk's ENOSPC is only its context; the line names the latter."""
+    import errno
+    import io
+
+    from hico_plugin.engine import checkpoints
+
+    folder = tmp_path / "checkpoints"
+    first = save_checkpoint(folder, 1, {"step": 1, "model": {}}, keep_last=3)
+
+    class FillsUp(io.FileIO):
+        def write(self, data):
+            if self.tell() + len(data) > 2000:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return super().write(data)
+
+    monkeypatch.setattr(checkpoints.os, "fdopen", lambda fd, mode: FillsUp(fd, "wb"))
+    with pytest.raises(HicoError, match=r"step-000000002\.ckpt: cannot write the checkpoint \(No space left"):
+        save_checkpoint(folder, 2, {"step": 2, "model": {"w": torch.zeros(10_000)}}, keep_last=1)
+    assert [p.name for p in folder.iterdir()] == [first.name]
+
+
 @pytest.mark.parametrize("module", ["this", "hico_evil_module"])
 def test_config_tag_naming_a_module_is_refused_without_importing(tmp_path, monkeypatch, module):
     marker = tmp_path / "imported"

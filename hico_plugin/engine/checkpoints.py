@@ -58,10 +58,11 @@ def save_checkpoint(checkpoint_dir: Path, step: int, payload: dict[str, Any], ke
     except BaseException as err:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
-        if isinstance(err, OSError):
-            raise HicoError(f"{path}: cannot write the checkpoint ({err.strerror or err}); "
+        cause = _os_error(err)  # torch.save turns the stream's OSError into a RuntimeError
+        if cause is not None:
+            raise HicoError(f"{path}: cannot write the checkpoint ({cause.strerror or cause}); "
                             "earlier checkpoints are kept") from None
-        if isinstance(err, RuntimeError) and "write" in str(err).lower():  # torch wraps a full disk
+        if isinstance(err, RuntimeError) and "write" in str(err).lower():
             raise HicoError(f"{path}: cannot write the checkpoint ({str(err).splitlines()[0]}); "
                             "earlier checkpoints are kept") from None
         raise
@@ -69,6 +70,17 @@ def save_checkpoint(checkpoint_dir: Path, step: int, payload: dict[str, Any], ke
         for old in list_checkpoints(checkpoint_dir)[:-keep_last]:
             old.unlink(missing_ok=True)
     return path
+
+
+def _os_error(err: BaseException) -> OSError | None:
+    """``err`` or the OSError it was raised while handling (torch.save's writer reports a failed
+    write as "unexpected pos" with the disk's ENOSPC as its context)."""
+    seen = 0
+    while err is not None and seen < 8:
+        if isinstance(err, OSError):
+            return err
+        err, seen = err.__cause__ or err.__context__, seen + 1
+    return None
 
 
 def load_checkpoint(path: Path, mmap: bool = False) -> dict[str, Any]:
