@@ -11,23 +11,10 @@ import pytest
 import torch
 from viser import transforms as vtf
 
-from hico_plugin.viewer import (
-    OUTPUT_NAMES,
-    RenderOptions,
-    RunViewerState,
-    apply_colormap,
-    camera_to_viser,
-    level_colors,
-    model_render_fn,
-    next_resolution,
-    normal_disagreement_degrees,
-    normalize_percentile,
-    normals_to_rgb,
-    plan_render,
-    render_size,
-    viser_to_camera,
-    visualize,
-)
+from hico_plugin.viewer import (RunViewerState, camera_to_viser, model_render_fn, next_resolution, plan_render,
+                                render_size, viser_to_camera)
+from hico_plugin.visualization import (OUTPUT_NAMES, RenderOptions, apply_colormap, level_colors,
+                                       normal_disagreement_degrees, normalize_percentile, normals_to_rgb, visualize)
 from hico_plugin.viewer.demo import DemoDataset, DemoModel, depth_to_normal
 from hico_plugin.viewer.state import evenly_spaced, make_thumbnail
 from hico_plugin.viewer.throttle import refresh_interval

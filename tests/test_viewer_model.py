@@ -12,17 +12,8 @@ from test_viewer_server import ProtocolClient, _wait_for
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.model import HiCoModelConfig
 from hico_plugin.rasterizer.renderer import RendererConfig
-from hico_plugin.viewer import (
-    OUTPUT_NAMES,
-    REQUIRED_OUTPUTS,
-    RenderOptions,
-    RunViewerState,
-    ViewableModel,
-    ViewerConfig,
-    camera_to_viser,
-    model_render_fn,
-    visualize,
-)
+from hico_plugin.viewer import RunViewerState, ViewableModel, ViewerConfig, camera_to_viser, model_render_fn
+from hico_plugin.visualization import OUTPUT_NAMES, REQUIRED_OUTPUTS, RenderOptions, visualize
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,8 @@ import viser
 import websockets.sync.client
 
 from hico_plugin.errors import HicoError
-from hico_plugin.viewer import RenderOptions, TrainingCameras, Viewer, ViewerConfig, viser_to_camera
+from hico_plugin.viewer import TrainingCameras, Viewer, ViewerConfig, viser_to_camera
+from hico_plugin.visualization import RenderOptions
 from hico_plugin.viewer.demo import orbit_cameras
 
 

@@ -12,7 +12,8 @@ from test_engine_toy_model import ToyDataset, ToyModel, render_blobs
 from test_viewer_server import ProtocolClient, _wait_for
 
 from hico_plugin.engine import TrainerConfig
-from hico_plugin.viewer import RenderOptions, ViewerConfig, attach_viewer
+from hico_plugin.viewer import ViewerConfig, attach_viewer
+from hico_plugin.visualization import RenderOptions
 
 
 class ViewableToy(ToyModel):
