@@ -14,8 +14,27 @@ import time
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
+from hico_plugin.errors import HicoError
+
 if TYPE_CHECKING:
     from hico_plugin.engine.trainer import Trainer
+
+
+def default_callbacks(run_dir: Path, max_steps: int, log_every: int, progress: str, tensorboard: bool) -> list[TrainerCallback]:
+    """The callbacks of every run: the metrics log, the progress display (``progress``: 'auto' is a
+    rich bar on a terminal and plain lines otherwise, or 'rich' / 'lines' / 'none') and TensorBoard."""
+    callbacks: list[TrainerCallback] = [MetricsLog(run_dir / "metrics.jsonl", log_every)]
+    if progress == "rich" or (progress == "auto" and sys.stdout.isatty()):
+        callbacks.append(ProgressBar(max_steps))
+    elif progress in ("auto", "lines"):
+        callbacks.append(ProgressLines(max_steps))
+    if tensorboard:
+        try:
+            import tensorboard  # noqa: F401  (only checks that the optional package is there)
+        except ImportError:
+            raise HicoError("config.vis: 'tensorboard' needs the tensorboard package (pip install tensorboard)") from None
+        callbacks.append(TensorBoardLog(run_dir / "tensorboard", log_every))
+    return callbacks
 
 
 class TrainerCallback:

@@ -2,10 +2,13 @@
 
 A checkpoint holds only tensors, numbers, strings and containers, so it is read with
 ``torch.load(weights_only=True)``: a crafted file cannot run code (the config lives in config.yml).
+What it holds of a training run (``training_payload``): the step, model, optimizers, their schedules,
+every rank's RNG states, the training wall time and the number of workers.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import random
 import re
@@ -17,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.errors import HicoError
 
 _CHECKPOINT_NAME = re.compile(r"^step-(\d{9})\.ckpt$")
@@ -37,6 +41,12 @@ def list_checkpoints(checkpoint_dir: Path) -> list[Path]:
 def latest_checkpoint(checkpoint_dir: Path) -> Path | None:
     checkpoints = list_checkpoints(checkpoint_dir)
     return checkpoints[-1] if checkpoints else None
+
+
+def checkpoint_due(completed_steps: int, save_every: int) -> bool:
+    """Whether a run writes a checkpoint after ``completed_steps`` besides the asked-for and final ones:
+    every ``save_every`` steps (0: never)."""
+    return bool(save_every) and completed_steps % save_every == 0
 
 
 def save_checkpoint(checkpoint_dir: Path, step: int, payload: dict[str, Any], keep_last: int) -> Path:
@@ -146,3 +156,35 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
+
+
+def training_payload(step: int, model: Any, optimizers: Optimizers, rng_states: list[dict[str, Any]],
+                     train_seconds: float, world_size: int) -> dict[str, Any]:
+    """The checkpoint of a training run after ``step`` completed steps; ``rng_states`` per rank."""
+    return {
+        "step": step,
+        "model": model.state_dict(),
+        "optimizers": optimizers.state_dict(),
+        "schedules": {k: dataclasses.asdict(v) for k, v in optimizers.schedules.items()},
+        "rng": rng_states,
+        "train_seconds": train_seconds,
+        "world_size": world_size,
+    }
+
+
+def restore_model(model: Any, payload: dict[str, Any], path: Path) -> None:
+    """Load the checkpoint ``payload`` (read from ``path``) into ``model``."""
+    try:
+        model.load_state_dict(payload["model"])
+    except (RuntimeError, KeyError, TypeError, ValueError) as err:
+        raise HicoError(f"{path}: checkpoint does not fit the configured model ({str(err).splitlines()[0]})") from None
+
+
+def restore_rank_rng(payload: dict[str, Any], rank: int, world_size: int) -> None:
+    """Set this rank's RNG states from ``payload``; resumed with another number of workers, rank 0's
+    (the best that can be done)."""
+    rng_states = payload.get("rng", [])
+    if len(rng_states) == world_size:
+        set_rng_state(rng_states[rank])
+    elif rng_states:
+        set_rng_state(rng_states[0])

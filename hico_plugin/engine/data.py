@@ -78,3 +78,12 @@ def make_batch(dataset: TrainDataset, indices: list[int], device: torch.device) 
     common = set.intersection(*(set(gt) for _, gt in views)) if views else set()
     gt = {key: torch.stack([v[1][key] for v in views]).to(device) for key in sorted(common)}
     return TrainBatch(cameras=cameras, images=images, indices=torch.tensor(indices, dtype=torch.long, device=device), gt=gt)
+
+
+def rank_batch(dataset: TrainDataset, train_indices: list[int], batch_size: int, seed: int, step: int,
+               rank: int, world_size: int, device: torch.device) -> TrainBatch:
+    """This rank's ``batch_size`` views of ``step`` (``train_indices``: the dataset indices of the
+    training split), loaded on ``device``."""
+    positions = batch_positions(len(train_indices), batch_size * world_size, seed, step)
+    mine = rank_slice(positions, rank, world_size).tolist()
+    return make_batch(dataset, [train_indices[p] for p in mine], device)

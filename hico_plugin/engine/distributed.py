@@ -17,6 +17,8 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from hico_plugin.errors import HicoError
+
 
 def is_distributed() -> bool:
     return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
@@ -51,6 +53,19 @@ def init_distributed(device: torch.device, timeout_minutes: float = 30.0) -> boo
     backend = "nccl" if device.type == "cuda" else "gloo"
     dist.init_process_group(backend=backend, timeout=datetime.timedelta(minutes=timeout_minutes))
     return True
+
+
+def resolve_device(name: str) -> torch.device:
+    """The device a config names: 'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N'."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise HicoError(f"config.device: '{name}' is not a device (expected auto, cpu, cuda or cuda:N)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise HicoError(f"config.device: '{name}' asked for but CUDA is not available")
+    return device
 
 
 def local_device(device: torch.device) -> torch.device:

@@ -1,4 +1,4 @@
-"""Evaluation on the test split and ``eval.json`` in nerfstudio's ns-eval layout."""
+"""Evaluation on the test split, when a run evaluates, and ``eval.json`` in nerfstudio's ns-eval layout."""
 
 from __future__ import annotations
 
@@ -84,6 +84,12 @@ def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], d
     # choices the model made from the data (e.g. which effects it simulates), as they are
     results.update(getattr(model, "eval_documents", dict)())
     return results
+
+
+def periodic_eval_due(completed_steps: int, eval_every: int, max_steps: int) -> bool:
+    """Whether a run evaluates after ``completed_steps``: every ``eval_every`` steps (0: never), except
+    after the last one, which the final evaluation covers."""
+    return bool(eval_every) and completed_steps % eval_every == 0 and completed_steps < max_steps
 
 
 def write_eval_json(

@@ -11,9 +11,10 @@ from typing import Any
 
 from torch import nn
 
-from hico_plugin.engine.checkpoints import load_checkpoint, newest_readable_checkpoint, seed_everything
+from hico_plugin.engine.checkpoints import load_checkpoint, newest_readable_checkpoint, restore_model, seed_everything
 from hico_plugin.engine.config_io import load_config
-from hico_plugin.engine.trainer import TrainerConfig, resolve_device
+from hico_plugin.engine.distributed import resolve_device
+from hico_plugin.engine.trainer import TrainerConfig
 from hico_plugin.errors import HicoError
 
 
@@ -27,14 +28,6 @@ class LoadedRun:
     dataset: Any
     checkpoint: Path
     run_dir: Path
-
-
-def restore_model(model: Any, payload: dict[str, Any], path: Path) -> None:
-    """Load the checkpoint ``payload`` (read from ``path``) into ``model``."""
-    try:
-        model.load_state_dict(payload["model"])
-    except (RuntimeError, KeyError, TypeError, ValueError) as err:
-        raise HicoError(f"{path}: checkpoint does not fit the configured model ({str(err).splitlines()[0]})") from None
 
 
 def _newest(config_path: Path, output_dir: Path) -> tuple[Path, dict[str, Any]]:

@@ -1,22 +1,36 @@
-"""The run directory: where a run lives, one trainer at a time, and its log trimmed on resume.
+"""The run directory: where a run lives, one trainer at a time, how a run starts in it (fresh,
+resumed or overwritten), the files that describe it, and its log trimmed on resume.
 
 Like nerfstudio, a run without ``--output-dir`` gets its own folder
 ``outputs/<experiment>/<method>/<timestamp>/``; ``--resume`` without one continues the newest there.
 While a trainer writes a run it holds an exclusive ``flock`` on ``RUN/.lock`` (the kernel drops it
 when the process dies, however it dies, so a crash never leaves a stale lock); a second trainer on
 the same folder refuses in one line.
+
+A run directory (``config.output_dir``, locked while a trainer writes it)::
+
+    config.yml                         the resolved config tree (``load_config`` reloads it)
+    metrics.jsonl                      one JSON object per logged step / eval (trimmed on resume)
+    checkpoints/step-XXXXXXXXX.ckpt    named by the number of completed steps; the last few kept
+    eval.json                          ns-eval layout, written after the final evaluation
+    effects.json (and others)          what the model derived from the data (``run_documents``)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import json
 import os
+import shutil
+import sys
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
-from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.engine import distributed as dist_utils
+from hico_plugin.engine.checkpoints import latest_checkpoint, newest_readable_checkpoint
+from hico_plugin.engine.config_io import save_config, write_text_atomic
 from hico_plugin.errors import HicoError
 
 TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
@@ -70,6 +84,48 @@ class RunLock:
             fcntl.flock(self._stream.fileno(), fcntl.LOCK_UN)
             self._stream.close()
             self._stream = None
+
+
+def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool, is_main: bool) -> Path | None:
+    """The checkpoint a run starts from (the same on every rank), or None for a fresh run.
+
+    Resuming takes the newest readable checkpoint; a fresh run into a folder that holds checkpoints
+    needs ``overwrite`` (which deletes them). A fresh run deletes the logs of an earlier attempt."""
+    checkpoint_dir = run_dir / "checkpoints"
+    newest = None
+    if is_main:
+        # Fresh runs only ask whether checkpoints exist; resumes skip unreadable newer ones.
+        newest = (newest_readable_checkpoint(checkpoint_dir) or (None, None))[0] if resume \
+            else latest_checkpoint(checkpoint_dir)
+    latest = dist_utils.broadcast_object(newest)
+    if latest is not None and not resume:
+        if not overwrite:
+            raise HicoError(
+                f"{checkpoint_dir}: already holds checkpoints; pass --resume to continue that "
+                "run, --overwrite to start afresh, or choose another --output-dir"
+            )
+        if is_main:
+            shutil.rmtree(checkpoint_dir)
+        latest = None
+    if latest is None and is_main:
+        for name in ("metrics.jsonl", "eval.json"):
+            (run_dir / name).unlink(missing_ok=True)
+        if resume:
+            print(f"note: no checkpoint in {checkpoint_dir}; starting a new run", file=sys.stderr)
+    dist_utils.barrier()
+    return latest
+
+
+def write_run_files(run_dir: Path, config: Any, model: Any) -> None:
+    """config.yml (paths absolute, without the one-off --resume / --overwrite) and the documents the
+    model derived from the data (e.g. effects.json), beside it."""
+    try:
+        save_config(dataclasses.replace(config, resume=False, overwrite=False), run_dir / "config.yml",
+                    absolute_paths=True)
+        for name, document in getattr(model, "run_documents", dict)().items():
+            write_text_atomic(run_dir / name, json.dumps(document, indent=2) + "\n")
+    except OSError as err:
+        raise HicoError(f"{run_dir}: cannot write the run's config ({err.strerror or err})") from None
 
 
 def trim_metrics(path: Path, step: int) -> int:

@@ -1,15 +1,11 @@
-"""The step loop: batches, optimisers, resume, eval, callbacks, distributed.
+"""The training run: its config and the loop that drives the steps, checkpoints and evaluations.
 
-Its neighbours hold the rest: ``run_dir`` (where a run lives, its lock, the log trimmed on resume),
-``checkpoints`` (files), ``stopping`` (SIGINT / SIGTERM / SIGHUP, the interrupted exit code),
-``controls`` (pause / checkpoint / stop from the viewer), ``loading`` (a trained run for the CLIs).
-
-Run directory (``config.output_dir``, locked while a trainer writes it)::
-
-    config.yml                         the resolved config tree (``load_config`` reloads it)
-    metrics.jsonl                      one JSON object per logged step / eval (trimmed on resume)
-    checkpoints/step-XXXXXXXXX.ckpt    named by the number of completed steps; the last few kept
-    eval.json                          ns-eval layout, written after the final evaluation
+Its neighbours hold the parts: ``step`` (one optimizer step and its all-reduce), ``data`` (each step's
+batch), ``run_dir`` (where a run lives, its lock, how it starts: fresh / resumed / overwritten),
+``checkpoints`` (files and what a checkpoint holds), ``evaluation`` (the test split, when to evaluate,
+eval.json), ``controls`` (pause / checkpoint / stop from the viewer), ``stopping`` (SIGINT / SIGTERM /
+SIGHUP), ``timing`` (train time, it/s), ``callbacks`` (logs, progress), ``loading`` (a trained run for
+the CLIs).
 
 Steps: ``Trainer.step`` counts completed optimizer steps; hooks and callbacks get the 0-based index of
 the step just run. The model's schedules use the same optimizer-step counter.
@@ -17,12 +13,8 @@ the step just run. The model's schedules use the same optimizer-step counter.
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import shutil
 import sys
 import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Literal
@@ -32,24 +24,31 @@ from torch import nn
 
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine import distributed as dist_utils
-from hico_plugin.engine.callbacks import MetricsLog, ProgressBar, ProgressLines, TensorBoardLog, TrainerCallback
+from hico_plugin.engine.callbacks import TrainerCallback, default_callbacks
 from hico_plugin.engine.checkpoints import (
-    latest_checkpoint,
+    checkpoint_due,
     load_checkpoint,
-    newest_readable_checkpoint,
+    restore_model,
+    restore_rank_rng,
     rng_state,
     save_checkpoint,
     seed_everything,
-    set_rng_state,
+    training_payload,
 )
-from hico_plugin.engine.config_io import save_config, write_text_atomic
 from hico_plugin.engine.controls import TrainerControls
-from hico_plugin.engine.data import batch_positions, make_batch, rank_slice
-from hico_plugin.engine.evaluation import evaluate, write_eval_json
+from hico_plugin.engine.data import rank_batch
+from hico_plugin.engine.evaluation import evaluate, periodic_eval_due, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers
-from hico_plugin.engine.protocol import StepOutput, TrainableModel, TrainDataset
-from hico_plugin.engine.run_dir import RunLock, trim_metrics
+from hico_plugin.engine.protocol import TrainableModel, TrainDataset
+from hico_plugin.engine.run_dir import (
+    RunLock,
+    start_checkpoint,
+    trim_metrics,
+    write_run_files,
+)
+from hico_plugin.engine.step import optimizer_step
 from hico_plugin.engine.stopping import stop_on_signals
+from hico_plugin.engine.timing import StepClock
 from hico_plugin.errors import HicoError
 
 
@@ -105,6 +104,15 @@ class TrainerConfig(InstantiateConfig):
     distributed_timeout_minutes: float = 30.0
     """Under torchrun: how long a worker waits for the others at a collective before failing."""
 
+    def validate(self) -> None:
+        """A HicoError naming the first field out of range."""
+        for name in ("max_steps", "eval_every", "save_every", "keep_checkpoints"):
+            if getattr(self, name) < 0:
+                raise HicoError(f"config.{name}: expected >= 0, got {getattr(self, name)}")
+        for name in ("batch_size", "log_every", "max_nonfinite_steps"):
+            if getattr(self, name) < 1:
+                raise HicoError(f"config.{name}: expected >= 1, got {getattr(self, name)}")
+
     def wants_viewer(self) -> bool:
         return "viewer" in self.vis or (self.vis == "auto" and sys.stdout.isatty())
 
@@ -124,18 +132,6 @@ class TrainerConfig(InstantiateConfig):
         return Trainer(self, **kwargs)
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise HicoError(f"config.device: '{name}' is not a device (expected auto, cpu, cuda or cuda:N)") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise HicoError(f"config.device: '{name}' asked for but CUDA is not available")
-    return device
-
-
 @dataclass
 class TrainResult:
     """How ``Trainer.train`` ended."""
@@ -149,14 +145,6 @@ class TrainResult:
     eval_results: dict[str, Any] | None
     """The final evaluation (rank 0, when not interrupted and the test split is not empty)."""
 
-
-def _validate(config: TrainerConfig) -> None:
-    for name in ("max_steps", "eval_every", "save_every", "keep_checkpoints"):
-        if getattr(config, name) < 0:
-            raise HicoError(f"config.{name}: expected >= 0, got {getattr(config, name)}")
-    for name in ("batch_size", "log_every", "max_nonfinite_steps"):
-        if getattr(config, name) < 1:
-            raise HicoError(f"config.{name}: expected >= 1, got {getattr(config, name)}")
 
 
 class Trainer:
@@ -176,9 +164,9 @@ class Trainer:
         dataset: TrainDataset | None = None,
         callbacks: Iterable[TrainerCallback] = (),
     ):
-        _validate(config)
+        config.validate()
         self.config = config
-        self.device = dist_utils.local_device(resolve_device(config.device))
+        self.device = dist_utils.local_device(dist_utils.resolve_device(config.device))
         self.distributed = dist_utils.init_distributed(self.device, config.distributed_timeout_minutes)
         self.rank = dist_utils.get_rank()
         self.world_size = dist_utils.get_world_size()
@@ -195,7 +183,7 @@ class Trainer:
         self.checkpoint_dir = self.run_dir / "checkpoints"
         self.callbacks: list[TrainerCallback] = []
         self.step = 0
-        self.train_seconds = 0.0
+        self.clock = StepClock()
         self.last_checkpoint: Path | None = None
         self._saved_step = -1
         self.latest_metrics: dict[str, float] = {}
@@ -208,17 +196,23 @@ class Trainer:
         try:
             self._start_run()
             if self.is_main:
-                self._add_default_callbacks()
+                self.callbacks += default_callbacks(self.run_dir, config.max_steps, config.log_every,
+                                                    config.progress, config.wants_tensorboard())
                 self.callbacks += list(callbacks)
         except BaseException:
             self.run_lock.release()
             raise
 
-    # ----------------------------------------------------------------- controls (viewer, signals)
     @property
     def is_main(self) -> bool:
         return self.rank == 0
 
+    @property
+    def train_seconds(self) -> float:
+        """Wall time spent in training steps, over every session of the run."""
+        return self.clock.train_seconds
+
+    # ----------------------------------------------------------------- controls (viewer, signals)
     @property
     def is_paused(self) -> bool:
         return self.controls.paused.is_set()
@@ -240,79 +234,32 @@ class Trainer:
         if self.is_main:
             self.callbacks.append(callback)
 
-    # ----------------------------------------------------------------- run directory and resume
+    # ----------------------------------------------------------------- start, checkpoints
     def _start_run(self) -> None:
-        newest = None
-        if self.is_main:
-            # Fresh runs only ask whether checkpoints exist; resumes skip unreadable newer ones.
-            newest = (newest_readable_checkpoint(self.checkpoint_dir) or (None, None))[0] if self.config.resume \
-                else latest_checkpoint(self.checkpoint_dir)
-        latest = dist_utils.broadcast_object(newest)
-        if latest is not None and not self.config.resume:
-            if not self.config.overwrite:
-                raise HicoError(
-                    f"{self.checkpoint_dir}: already holds checkpoints; pass --resume to continue that "
-                    "run, --overwrite to start afresh, or choose another --output-dir"
-                )
-            if self.is_main:
-                shutil.rmtree(self.checkpoint_dir)
-            latest = None
-        if latest is None and self.is_main:  # a fresh run: no stale logs of an earlier attempt
-            for name in ("metrics.jsonl", "eval.json"):
-                (self.run_dir / name).unlink(missing_ok=True)
-        dist_utils.barrier()
+        latest = start_checkpoint(self.run_dir, self.config.resume, self.config.overwrite, self.is_main)
         if latest is not None:
             self.load_checkpoint(latest)
             if self.is_main:
                 trim_metrics(self.run_dir / "metrics.jsonl", self.step)
         else:
-            if self.config.resume and self.is_main:
-                print(f"note: no checkpoint in {self.checkpoint_dir}; starting a new run", file=sys.stderr)
             if isinstance(self.model, nn.Module):
                 dist_utils.broadcast_module_(self.model)
             self.optimizers = self._make_optimizers()
-        if self.is_main:  # resume / overwrite are one-off actions, not properties of the run
-            try:
-                save_config(dataclasses.replace(self.config, resume=False, overwrite=False), self.run_dir / "config.yml",
-                            absolute_paths=True)
-                # what the model derived from the data (e.g. effects.json), kept beside the config
-                for name, document in getattr(self.model, "run_documents", dict)().items():
-                    write_text_atomic(self.run_dir / name, json.dumps(document, indent=2) + "\n")
-            except OSError as err:
-                raise HicoError(f"{self.run_dir}: cannot write the run's config ({err.strerror or err})") from None
+        if self.is_main:
+            write_run_files(self.run_dir, self.config, self.model)
 
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))
 
-    def _add_default_callbacks(self) -> None:
-        config = self.config
-        self.callbacks.append(MetricsLog(self.run_dir / "metrics.jsonl", config.log_every))
-        if config.progress == "rich" or (config.progress == "auto" and sys.stdout.isatty()):
-            self.callbacks.append(ProgressBar(config.max_steps))
-        elif config.progress in ("auto", "lines"):
-            self.callbacks.append(ProgressLines(config.max_steps))
-        if config.wants_tensorboard():
-            try:
-                import tensorboard  # noqa: F401  (only checks that the optional package is there)
-            except ImportError:
-                raise HicoError("config.vis: 'tensorboard' needs the tensorboard package (pip install tensorboard)") from None
-            self.callbacks.append(TensorBoardLog(self.run_dir / "tensorboard", config.log_every))
-
     def load_checkpoint(self, path: Path) -> None:
         """Restore model, optimizers, step, train time and RNG states from ``path``."""
-        from hico_plugin.engine.loading import restore_model
-
         payload = load_checkpoint(Path(path))
         restore_model(self.model, payload, Path(path))
         self.optimizers = self._make_optimizers()  # after loading: the model may hold new Parameters
         self.optimizers.load_state_dict(payload["optimizers"])
         self.step = int(payload["step"])
-        self.train_seconds = float(payload.get("train_seconds", 0.0))
-        rng_states = payload.get("rng", [])
-        if len(rng_states) == self.world_size:
-            set_rng_state(rng_states[self.rank])
-        elif rng_states:  # resumed with another number of workers: the best we can do
-            set_rng_state(rng_states[0])
+        self.clock = StepClock(float(payload.get("train_seconds", 0.0)))
+        restore_rank_rng(payload, self.rank, self.world_size)
         self.last_checkpoint = Path(path)
         self._saved_step = self.step
 
@@ -322,56 +269,17 @@ class Trainer:
         self._saved_step = self.step  # on every rank, so all agree on whether a final save is due
         if not self.is_main:
             return None
-        payload = {
-            "step": self.step,
-            "model": self.model.state_dict(),
-            "optimizers": self.optimizers.state_dict(),
-            "schedules": {k: dataclasses.asdict(v) for k, v in self.optimizers.schedules.items()},
-            "rng": states,
-            "train_seconds": self.train_seconds,
-            "world_size": self.world_size,
-        }
-        self.last_checkpoint = save_checkpoint(
-            self.checkpoint_dir, self.step, payload, self.config.keep_checkpoints
-        )
+        payload = training_payload(self.step, self.model, self.optimizers, states, self.train_seconds, self.world_size)
+        self.last_checkpoint = save_checkpoint(self.checkpoint_dir, self.step, payload, self.config.keep_checkpoints)
         return self.last_checkpoint
 
-    # ----------------------------------------------------------------- the step
-    def _reduce_step_scalars(self, output: StepOutput) -> tuple[dict[str, float], bool]:
-        """One all-reduce for the loss, the metrics (means over ranks; the metric names must be the
-        same on every rank) and whether any rank's loss is non-finite.
-
-        Returns (metrics, loss finite on every rank).
-        """
-        metric_names = sorted(output.metrics)
-        values = [output.loss.detach().float().reshape(())]
-        values += [torch.as_tensor(output.metrics[k], dtype=torch.float32).detach().reshape(-1).mean() for k in metric_names]
-        nonfinite = (~torch.isfinite(output.loss.detach())).any().float().reshape(())
-        vector = torch.stack([v.to(self.device) for v in values] + [nonfinite.to(self.device)])
-        dist_utils.all_reduce_sum_(vector)
-        vector = vector.cpu()
-        means = (vector[:-1] / self.world_size).tolist()
-        return dict(zip(["loss", *metric_names], means)), bool(vector[-1] == 0)
-
-    def _train_step(self, step: int) -> tuple[dict[str, float], bool]:
-        positions = batch_positions(
-            len(self.train_indices), self.config.batch_size * self.world_size, self.config.seed, step
-        )
-        mine = rank_slice(positions, self.rank, self.world_size).tolist()
-        batch = make_batch(self.dataset, [self.train_indices[p] for p in mine], self.device)
-        self.optimizers.zero_grad()
-        output = self.model.train_step(batch, step)
-        metrics, finite = self._reduce_step_scalars(output)
-        if not finite:
-            self.optimizers.zero_grad()
-            return metrics, False
-        output.loss.backward()
-        self.model.after_backward(step, output)
-        dist_utils.average_gradients_(self.optimizers.all_params())
-        lrs = self.optimizers.step(step)
-        self.model.after_optimizer_step(step, self.optimizers)
-        metrics.update({f"lr/{name}": lr for name, lr in lrs.items()})
-        return metrics, True
+    def _keep_model(self, err: HicoError, message: str) -> HicoError:
+        """A bad file found while training or evaluating never loses the trained model: the checkpoint
+        of this step is written (when not yet), and the error returned says where it is and how to go
+        on (``message`` with {step} and {checkpoint})."""
+        if self._saved_step != self.step:
+            self.save_checkpoint()
+        return HicoError(f"{err} -- {message.format(step=self.step, checkpoint=self.last_checkpoint)}")
 
     # ----------------------------------------------------------------- the loop
     def train(self) -> TrainResult:
@@ -387,7 +295,6 @@ class Trainer:
         config = self.config
         self._run_callbacks("on_train_start", self, self.step)
         nonfinite_streak = 0
-        it_per_s = None
         stop, checkpoint, paused = self.controls.flags()
         if checkpoint:
             self.save_checkpoint()
@@ -396,21 +303,20 @@ class Trainer:
                 stop = True
                 break
             step = self.step
-            start = time.perf_counter()
+            self.clock.start()
             with self.lock:
                 try:
-                    metrics, finite = self._train_step(step)
+                    batch = rank_batch(self.dataset, self.train_indices, config.batch_size, config.seed, step,
+                                       self.rank, self.world_size, self.device)
+                    metrics, finite = optimizer_step(self.model, self.optimizers, batch, step, self.device,
+                                                     self.world_size)
                 except HicoError as err:  # a bad training image: keep what was trained so far
-                    if self._saved_step != self.step:
-                        self.save_checkpoint()
-                    raise HicoError(f"{err} -- training stopped at step {self.step}, saved in "
-                                    f"{self.last_checkpoint}; fix the file, then hico-train --resume") from None
-            seconds = time.perf_counter() - start
+                    raise self._keep_model(err, "training stopped at step {step}, saved in {checkpoint}; "
+                                                "fix the file, then hico-train --resume") from None
+            timing = self.clock.stop()
             self.step += 1
-            self.train_seconds += seconds
-            it_per_s = 1.0 / seconds if it_per_s is None else 0.9 * it_per_s + 0.1 / seconds
             metrics.update({k: float(v) for k, v in self.model.stats().items()})
-            metrics.update(it_per_s=it_per_s, train_seconds=self.train_seconds)
+            metrics.update(timing)
             if finite:
                 nonfinite_streak = 0
             else:
@@ -427,43 +333,37 @@ class Trainer:
                     f"stopped without saving; the last good checkpoint is {self.last_checkpoint or 'none'}"
                 )
             stop, checkpoint, paused = self.controls.flags()  # after the callbacks, which may ask
-            if checkpoint or stop or (config.save_every and self.step % config.save_every == 0):
+            if checkpoint or stop or checkpoint_due(self.step, config.save_every):
                 self.save_checkpoint()
-            if not stop and config.eval_every and self.step % config.eval_every == 0 and self.step < config.max_steps:
-                self._evaluate_keeping_model(step, write_json=False)
+            if not stop and periodic_eval_due(self.step, config.eval_every, config.max_steps):
+                self._evaluate(step, write_json=False)
         interrupted = stop and self.step < config.max_steps
         if self._saved_step != self.step:
             self.save_checkpoint()
         try:
-            eval_results = None if interrupted else self._evaluate_keeping_model(max(self.step - 1, 0), write_json=True)
+            eval_results = None if interrupted else self._evaluate(max(self.step - 1, 0), write_json=True)
         finally:
             self._run_callbacks("on_train_end", max(self.step - 1, 0))
         return TrainResult(self.step, interrupted, self.last_checkpoint if self.is_main else None, eval_results)
 
-    def _evaluate_keeping_model(self, step: int, write_json: bool) -> dict[str, Any] | None:
-        """``_evaluate_and_report``; a bad test file found while evaluating never loses the trained
-        model: the checkpoint is written first and the error says how to re-run the evaluation."""
-        try:
-            return self._evaluate_and_report(step, write_json)
-        except HicoError as err:
-            if self._saved_step != self.step:
-                self.save_checkpoint()
-            raise HicoError(f"{err} -- evaluation failed, the model of step {self.step} is saved in "
-                            f"{self.last_checkpoint}; fix the file, then run hico-eval --load-config "
-                            f"{self.run_dir / 'config.yml'} (or --resume to train on)") from None
-
-    def _evaluate_and_report(self, step: int, write_json: bool) -> dict[str, Any] | None:
+    # ----------------------------------------------------------------- evaluation
+    def _evaluate(self, step: int, write_json: bool) -> dict[str, Any] | None:
         """Evaluate on rank 0 (others go on to the next collective and wait there)."""
         if not self.is_main or not self.test_indices:
             return None
-        with self.lock:
-            results = evaluate(self.model, self.dataset, self.test_indices, self.device)
-        results["train_seconds"] = self.train_seconds
-        results["step"] = self.step
-        self.last_eval = results
-        if write_json:
-            self.write_eval_json(results)
-        self._run_callbacks("on_eval", step, results)
+        try:
+            with self.lock:
+                results = evaluate(self.model, self.dataset, self.test_indices, self.device)
+            results["train_seconds"] = self.train_seconds
+            results["step"] = self.step
+            self.last_eval = results
+            if write_json:
+                self.write_eval_json(results)
+            self._run_callbacks("on_eval", step, results)
+        except HicoError as err:
+            raise self._keep_model(err, "evaluation failed, the model of step {step} is saved in {checkpoint}; "
+                                        f"fix the file, then run hico-eval --load-config {self.run_dir / 'config.yml'} "
+                                        "(or --resume to train on)") from None
         return results
 
     def write_eval_json(self, results: dict[str, Any]) -> Path:
@@ -482,4 +382,3 @@ class Trainer:
             method = getattr(callback, hook, None)  # duck-typed callbacks may leave hooks out
             if method is not None:
                 method(*args)
-
