@@ -16,6 +16,7 @@ import tyro
 
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.engine.trainer import TrainerConfig
+from hico_plugin.losses import with_every_loss
 from hico_plugin.model.hico import HiCoModelConfig
 from hico_plugin.registry import load_plugins
 from hico_plugin.viewer.viewer import ViewerConfig
@@ -49,8 +50,8 @@ def _with(config: HiCoTrainerConfig, method_name: str, *, context: str | None = 
         model = dataclasses.replace(model, field=dataclasses.replace(
             model.field, context=dataclasses.replace(model.field.context, **changes)))
     if dngc is not None:
-        model = dataclasses.replace(model, losses=dataclasses.replace(
-            model.losses, dngc=dataclasses.replace(model.losses.dngc, enabled=dngc)))
+        model = dataclasses.replace(model, losses={
+            **model.losses, "dngc": dataclasses.replace(model.losses["dngc"], enabled=dngc)})
     return dataclasses.replace(config, method_name=method_name, model=model, **trainer_fields)
 
 
@@ -99,9 +100,11 @@ def register_preset(name: str, description: str, config: HiCoTrainerConfig) -> N
 
 
 def all_presets() -> dict[str, tuple[str, HiCoTrainerConfig]]:
-    """The built-in presets and those of every installed plug-in."""
+    """The built-in presets and those of every installed plug-in, each offering every registered loss
+    (those it does not name switched off)."""
     load_plugins()
-    return PRESETS
+    return {name: (description, dataclasses.replace(config, model=dataclasses.replace(
+        config.model, losses=with_every_loss(config.model.losses)))) for name, (description, config) in PRESETS.items()}
 
 
 def write_preset_files(directory: str) -> None:

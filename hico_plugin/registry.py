@@ -85,6 +85,11 @@ class Registry(Generic[T]):
         config classes while this package is still being imported."""
         return list(self._entries.items())
 
+    def items(self) -> list[tuple[str, T]]:
+        """(name, implementation) in registration order, installed plug-ins' included."""
+        load_plugins()
+        return list(self._entries.items())
+
     def names(self) -> list[str]:
         load_plugins()
         return sorted(self._entries)

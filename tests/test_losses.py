@@ -11,8 +11,9 @@ from hico_plugin.errors import HicoError
 from hico_plugin.losses import (
     LOSSES,
     DNGCLossConfig,
-    LossesConfig,
+    Losses,
     PhotometricLossConfig,
+    default_losses,
     dngc_losses,
     edge_aware_smoothness,
     edge_weights,
@@ -167,8 +168,6 @@ def test_dngc_component_outputs_and_weighting():
     with pytest.raises(HicoError, match="depth_normal"):
         loss(RenderOutputs(rgb=images["rgb"], alpha=images["alpha"], normal=images["normal"],
                            distance=images["distance"]), images["rgb"], step=15)
-    disabled = DNGCLossConfig(enabled=False).setup()
-    assert disabled.required_outputs(10**6) == set() and disabled(outputs, images["rgb"], 10**6) == {}
 
 
 def test_photometric_known_values_and_gradient():
@@ -188,9 +187,9 @@ def test_photometric_known_values_and_gradient():
 
 
 def test_loss_set_unions_outputs_and_terms():
-    losses = LossesConfig(dngc=DNGCLossConfig(start_step=0, warmup_steps=0)).setup()
+    losses = Losses.setup({**default_losses(), "dngc": DNGCLossConfig(start_step=0, warmup_steps=0)})
     assert losses.required_outputs(1) == {"rgb", "alpha", "normal", "depth_normal", "distance"}
-    assert LossesConfig().setup().required_outputs(0) == {"rgb"}
+    assert Losses.setup(default_losses()).required_outputs(0) == {"rgb"}
     images = plane_render((0.0, 0.0, -1.0), 2.0)
     images = {k: v.float()[None].expand(2, *v.shape) for k, v in images.items()}  # two cameras
     terms = losses(RenderOutputs(**images), images["rgb"], step=1)
@@ -227,13 +226,31 @@ def test_dngc_on_rasterized_plane(disc_tilt, expect_consistent):
 
 
 def test_losses_config_is_the_registry_and_scales_its_own_schedules():
-    from dataclasses import fields
-
-    from hico_plugin.losses import LOSSES
-
-    assert [f.name for f in fields(LossesConfig)] == [name for name, _ in LOSSES.registered()] == ["rgb", "dngc"]
-    losses = LossesConfig().setup(schedule_scale=0.1)
+    assert list(default_losses()) == [name for name, _ in LOSSES.registered()] == ["rgb", "dngc"]
+    losses = Losses.setup(default_losses(), schedule_scale=0.1)
     dngc = losses.components["dngc"]
     assert (dngc.start_step, dngc.warmup_steps) == (1000, 1000)
     assert losses.metrics(1500) == {"dngc_weight": 0.5}
-    assert LossesConfig().setup().components["dngc"].start_step == 10_000
+    assert Losses.setup(default_losses()).components["dngc"].start_step == 10_000
+
+
+def test_a_disabled_loss_is_not_built_and_a_foreign_config_is_named():
+    losses = Losses.setup({**default_losses(), "dngc": DNGCLossConfig(enabled=False)})
+    assert list(losses.components) == ["rgb"] and losses.metrics(10**6) == {}
+    with pytest.raises(HicoError, match=r"model\.losses\.sky: expected a loss config .*got SkyConfig"):
+        from hico_plugin.model.sky import SkyConfig
+
+        Losses.setup({"sky": SkyConfig()})
+
+
+def test_every_registered_loss_is_offered_switched_off(monkeypatch):
+    from hico_plugin.losses import LossConfig, with_every_loss
+
+    class TestOnlyLoss(LossConfig):
+        pass
+
+    monkeypatch.setitem(LOSSES._entries, "test-only", TestOnlyLoss)  # registered for this test only
+    offered = with_every_loss({"rgb": PhotometricLossConfig(ssim_lambda=0.3)})
+    assert list(offered) == ["rgb", "dngc", "test-only"]
+    assert offered["rgb"].ssim_lambda == 0.3 and offered["rgb"].enabled
+    assert not offered["dngc"].enabled and not offered["test-only"].enabled

@@ -49,8 +49,8 @@ def test_geometry_is_rendered_only_once_dngc_starts(tiny):
 
 def test_dngc_off_never_renders_geometry(tiny):
     config = _config()
-    config = dataclasses.replace(config, losses=dataclasses.replace(
-        config.losses, dngc=dataclasses.replace(config.losses.dngc, enabled=False)))
+    config = dataclasses.replace(config, losses={
+        **config.losses, "dngc": dataclasses.replace(config.losses["dngc"], enabled=False)})
     model = config.setup(dataset=tiny, total_steps=300)
     assert model.required_outputs(10_000) == {"rgb"}
 

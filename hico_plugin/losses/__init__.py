@@ -1,9 +1,11 @@
-"""Losses: photometric (L1 + D-SSIM) and depth-normal geometric consistency (DNGC).
+"""Losses: photometric (L1 + D-SSIM) and depth-normal geometric consistency (DNGC), and any loss a
+plug-in registers in ``LOSSES``.
 
-``LossesConfig().setup()`` builds the method's loss set; the model asks it which render outputs a step
-needs and sums the named terms it returns::
+A model's losses are configured as ``{name: LossConfig}`` (``default_losses()``: every registered loss
+at its defaults); ``Losses.setup`` builds the enabled ones; the model asks them which render outputs a
+step needs and sums the named terms they return::
 
-    losses = LossesConfig().setup(schedule_scale=run_steps / reference_steps)
+    losses = Losses.setup(default_losses(), schedule_scale=run_steps / reference_steps)
     outputs = rasterize(..., outputs=tuple(losses.required_outputs(step)))
     terms = losses(outputs, target_rgb, step)      # {"rgb_l1": ..., "rgb_dssim": ..., "dngc_nc": ...}
     loss = sum(terms.values())
@@ -13,13 +15,12 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from dataclasses import field, fields, make_dataclass
 
 from torch import Tensor
 
-from hico_plugin.config import InstantiateConfig
-from hico_plugin.losses.base import LOSSES, LossComponent, require_images
-# Photometric first: import order is registration order, the order of the config fields and summed terms.
+from hico_plugin.errors import HicoError
+from hico_plugin.losses.base import LOSSES, LossComponent, LossConfig, require_images
+# Photometric first: import order is registration order, the order of default_losses() and of the summed terms.
 from hico_plugin.losses.photometric import PhotometricLoss, PhotometricLossConfig, photometric_terms  # isort: skip
 from hico_plugin.losses.dngc import (
     DNGCLoss,
@@ -38,6 +39,17 @@ class Losses:
 
     def __init__(self, components: dict[str, LossComponent]):
         self.components = components
+
+    @classmethod
+    def setup(cls, configs: dict[str, LossConfig], schedule_scale: float = 1.0) -> Losses:
+        """The components of the enabled ``configs``, in their order (the order the terms are summed);
+        ``schedule_scale`` (run length / reference length) scales their step schedules."""
+        for name, config in configs.items():
+            if not isinstance(config, LossConfig):
+                raise HicoError(f"model.losses.{name}: expected a loss config (registered: "
+                                f"{', '.join(LOSSES.names())}), got {type(config).__name__}")
+        return cls({name: config.setup(schedule_scale=schedule_scale)
+                    for name, config in configs.items() if config.enabled})
 
     def required_outputs(self, step: int) -> set[str]:
         """Union of the render outputs every component reads at ``step``."""
@@ -63,20 +75,20 @@ for _module in pkgutil.iter_modules(__path__):
     importlib.import_module(f"{__name__}.{_module.name}")
 
 
-def _setup(self, schedule_scale: float = 1.0, **kwargs) -> Losses:
-    """Build every loss; ``schedule_scale`` (run length / reference length) scales their step schedules."""
-    return Losses({f.name: getattr(self, f.name).setup(schedule_scale=schedule_scale) for f in fields(self)})
+def default_losses() -> dict[str, LossConfig]:
+    """Every loss registered so far, at its defaults, in registration order (a model config's default;
+    built while this package may still be importing, so it does not load plug-ins itself)."""
+    return {name: config() for name, config in LOSSES.registered()}
 
 
-LossesConfig = make_dataclass(
-    "LossesConfig", [(name, config, field(default_factory=config)) for name, config in LOSSES.registered()],
-    bases=(InstantiateConfig,), namespace={"setup": _setup})
-LossesConfig.__module__ = __name__
-LossesConfig.__doc__ = "The method's losses: one field per registered loss (LOSSES), by its name."
+def with_every_loss(losses: dict[str, LossConfig]) -> dict[str, LossConfig]:
+    """``losses`` and, switched off, every registered loss (installed plug-ins' too) it does not name:
+    each is then a ``--model.losses.NAME...`` option, and installing a plug-in changes no config."""
+    return {**losses, **{name: config(enabled=False) for name, config in LOSSES.items() if name not in losses}}
 
 
 __all__ = [
-    "DNGCLoss", "DNGCLossConfig", "LOSSES", "LossComponent", "Losses", "LossesConfig", "PhotometricLoss",
-    "PhotometricLossConfig", "dngc_losses", "edge_aware_smoothness", "edge_weights", "normal_consistency_loss",
-    "photometric_terms", "require_images", "warmup_weight",
+    "DNGCLoss", "DNGCLossConfig", "LOSSES", "LossComponent", "LossConfig", "Losses", "PhotometricLoss",
+    "PhotometricLossConfig", "default_losses", "dngc_losses", "edge_aware_smoothness", "edge_weights",
+    "normal_consistency_loss", "photometric_terms", "require_images", "warmup_weight", "with_every_loss",
 ]

@@ -22,9 +22,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
-from hico_plugin.losses.base import LOSSES, require_images
+from hico_plugin.losses.base import LOSSES, LossConfig, require_images
 from hico_plugin.rasterizer.base import RenderOutputs
 
 NORMAL_EPS = 1e-8  # a normal shorter than this is "undefined"
@@ -117,7 +116,7 @@ class DNGCLoss:
         self.warmup_steps = warmup_steps
 
     def warmup(self, step: int) -> float:
-        return warmup_weight(step, self.start_step, self.warmup_steps) if self.config.enabled else 0.0
+        return warmup_weight(step, self.start_step, self.warmup_steps)
 
     def metrics(self, step: int) -> dict[str, float]:
         return {"dngc_weight": self.warmup(step)}
@@ -138,7 +137,7 @@ class DNGCLoss:
 
 @LOSSES.register("dngc")
 @dataclass
-class DNGCLossConfig(InstantiateConfig):
+class DNGCLossConfig(LossConfig):
     """Depth-normal geometric consistency: normal consistency + edge-aware normal / distance smoothness."""
 
     enabled: bool = True

@@ -6,9 +6,8 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
-from hico_plugin.losses.base import LOSSES, require_images
+from hico_plugin.losses.base import LOSSES, LossConfig, require_images
 from hico_plugin.metrics.image import ssim
 from hico_plugin.rasterizer.base import RenderOutputs
 
@@ -32,11 +31,9 @@ class PhotometricLoss:
         self.config = config
 
     def required_outputs(self, step: int) -> set[str]:
-        return {"rgb"} if self.config.enabled else set()
+        return {"rgb"}
 
     def __call__(self, outputs: RenderOutputs, target: Tensor, step: int) -> dict[str, Tensor]:
-        if not self.config.enabled:
-            return {}
         rgb = require_images(outputs, {"rgb"}, "rgb")["rgb"]
         l1, dssim = photometric_terms(rgb, target)
         weight = self.config.ssim_lambda
@@ -45,11 +42,9 @@ class PhotometricLoss:
 
 @LOSSES.register("rgb")
 @dataclass
-class PhotometricLossConfig(InstantiateConfig):
+class PhotometricLossConfig(LossConfig):
     """Photometric reconstruction loss (1 - lambda) L1 + lambda D-SSIM."""
 
-    enabled: bool = True
-    """Add the photometric loss."""
     ssim_lambda: float = 0.2
     """lambda: weight of the D-SSIM term (1 - lambda goes to L1); 0.2 as 3DGS and CityGS-X."""
 

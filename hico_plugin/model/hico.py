@@ -30,7 +30,7 @@ from hico_plugin.errors import HicoError
 from hico_plugin.field.decoder import NeuralGaussians
 from hico_plugin.field.field import FieldConfig
 from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_sums
-from hico_plugin.losses import LossesConfig
+from hico_plugin.losses import LossConfig, Losses, default_losses
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
 from hico_plugin.model import lod as _lod  # noqa: F401 -- registers the "lod" effect
@@ -70,8 +70,8 @@ class HiCoModelConfig(InstantiateConfig):
     """Anchor octree, LOD selection, context aggregation (CLCA), decoder and densification."""
     renderer: RendererConfig = dataclass_field(default_factory=RendererConfig)
     """Rasterizer backend and its options."""
-    losses: LossesConfig = dataclass_field(default_factory=LossesConfig)
-    """Loss components (photometric, DNGC)."""
+    losses: dict[str, LossConfig] = dataclass_field(default_factory=default_losses)
+    """Loss components by registered name: photometric (rgb), DNGC (dngc) and those of installed plug-ins."""
     effects: str = "auto"
     """Image-formation effects to simulate: "auto" turns on exactly those the dataset analysis finds
     (sky, exposure = per-image colour transform, lod = octree levels from the distance spread);
@@ -115,7 +115,7 @@ class HiCoModel(nn.Module):
                                         num_train_cameras=len(train_ids), total_steps=total_steps)
         self.renderer = config.renderer.setup()
         scale = (total_steps / config.field.reference_steps) if (config.scale_schedules and total_steps) else 1.0
-        self.losses = config.losses.setup(schedule_scale=scale)
+        self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
         self.sky = config.sky.setup() if "sky" in on else None
