@@ -69,3 +69,16 @@ def test_run_config_paths_are_written_absolute(tmp_path, monkeypatch):
     save_config(config, tmp_path / "preset.yml")
     assert load_config(tmp_path / "run.yml").data == tmp_path / "data" / "site"
     assert load_config(tmp_path / "preset.yml").data == Path("data/site")
+
+
+def test_a_run_from_before_losses_became_a_mapping_still_loads(tmp_path):
+    import hico_plugin.presets  # noqa: F401  (the config classes a run's config.yml names)
+    from hico_plugin.losses import DNGCLossConfig, PhotometricLossConfig
+
+    path = tmp_path / "config.yml"
+    path.write_text("!dataclass:hico_plugin.model.hico.HiCoModelConfig\n"
+                    "losses: !dataclass:hico_plugin.losses.LossesConfig\n"
+                    "  rgb: !dataclass:hico_plugin.losses.photometric.PhotometricLossConfig\n    ssim_lambda: 0.3\n"
+                    "  dngc: !dataclass:hico_plugin.losses.dngc.DNGCLossConfig\n    enabled: false\n")
+    assert load_config(path).losses == {"rgb": PhotometricLossConfig(ssim_lambda=0.3),
+                                         "dngc": DNGCLossConfig(enabled=False)}

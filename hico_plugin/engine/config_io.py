@@ -34,6 +34,8 @@ from hico_plugin.errors import HicoError
 
 _DATACLASS_TAG = "!dataclass:"
 _ENUM_TAG = "!enum:"
+# Config classes that became plain mappings; config.yml files of runs trained before still load.
+_NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses: {name: LossConfig} since issue 16
 
 
 class _ConfigDumper(yaml.SafeDumper):
@@ -114,6 +116,8 @@ def _config_class(qualified: str, loader: _ConfigLoader) -> type:
 
 
 def _construct_dataclass(loader: _ConfigLoader, suffix: str, node: yaml.Node) -> Any:
+    if suffix in _NOW_MAPPINGS:
+        return loader.construct_mapping(node, deep=True) if isinstance(node, yaml.MappingNode) else {}
     cls = _config_class(suffix, loader)
     if not dataclasses.is_dataclass(cls):
         raise HicoError(f"{loader.name}: '{suffix}' is not a config dataclass")
