@@ -1,99 +1,39 @@
-"""``hico-export --load-config RUN/config.yml {gaussians|anchors|mesh} [...]``: PLY files of a trained run.
+"""``hico-export --load-config RUN/config.yml EXPORTER [...]``: exports of a trained run.
 
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml gaussians --camera-index 3
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml anchors --output anchors.ply
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml mesh --depth-filter
 
-Each target is a dataclass with ``run(run)``; adding one (e.g. ``mesh``) is one more entry in
-``Target``. Run options may stand before or after the target name. Outputs are in COLMAP's frame.
+Every registered exporter (``hico_plugin.export.exporters.EXPORTERS``, installed plug-ins' included) is
+a subcommand by its name; a new one is one file that registers itself. Run options may stand before or
+after the exporter name. Built-in outputs are PLY files in COLMAP's frame.
 """
 
 from __future__ import annotations
 
+import inspect
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Sequence, Union
+from typing import Any, Generic, Sequence, TypeVar
 
-import torch
 import tyro
 
 import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
-from hico_plugin.engine import LoadedRun, load_run
-from hico_plugin.errors import HicoError
-from hico_plugin.export import (
-    anchor_vertices,
-    facing_normals,
-    gaussians_to_colmap,
-    inria_vertices,
-    write_ply,
-)
-from hico_plugin.mesh import MeshExportConfig
-from hico_plugin.visualization.visualize import level_colors
+from hico_plugin.engine import load_run
+from hico_plugin.export.exporters import EXPORTERS
+
+TargetT = TypeVar("TargetT")
 
 
 @dataclass
-class ExportGaussians:
-    """The neural Gaussians decoded for one camera (at evaluation LOD) as an Inria-layout 3DGS PLY."""
+class ExportArgs(Generic[TargetT]):
+    """Export a trained HiCo-GS run (PLY files in the original COLMAP frame, or what an installed
+    plug-in's exporter writes)."""
 
-    camera_index: int = 0
-    """Dataset view whose decoding is exported (the Gaussians are view-dependent)."""
-    output: Path | None = None
-    """PLY to write (default RUN/exports/gaussians_view<I>.ply)."""
-
-    @torch.no_grad()
-    def run(self, run: LoadedRun) -> Path:
-        model, dataset = run.model, run.dataset
-        if not 0 <= self.camera_index < len(dataset.cameras):
-            raise HicoError(f"--camera-index: {self.camera_index} is out of range "
-                            f"(the run has views 0..{len(dataset.cameras) - 1})")
-        _, gaussians = model.render(dataset.cameras[self.camera_index], ("alpha",))
-        camera = dataset.cameras[self.camera_index].to(gaussians.means.device)
-        normals = facing_normals(gaussians.means, gaussians.quats, gaussians.scales, camera.center)
-        means, scales = gaussians_to_colmap(gaussians.means, gaussians.scales, dataset.transform)
-        rows, dropped = inria_vertices(means, gaussians.quats, scales, gaussians.opacities, gaussians.colors, normals)
-        path = self.output or run.run_dir / "exports" / f"gaussians_view{self.camera_index}.ply"
-        write_ply(path, rows)
-        print(f"gaussians: wrote {dropped.kept} of {len(gaussians)} decoded for view {self.camera_index} to {path}; "
-              f"dropped {dropped.dropped} (non-finite {dropped.non_finite}, zero quaternion {dropped.zero_quaternion}, "
-              f"opacity < 1/255 {dropped.transparent})")
-        return path
-
-
-@dataclass
-class ExportAnchors:
-    """The anchor points (position, octree level, feature; coloured by level) as a PLY point cloud."""
-
-    output: Path | None = None
-    """PLY to write (default RUN/exports/anchors.ply)."""
-
-    @torch.no_grad()
-    def run(self, run: LoadedRun) -> Path:
-        field, transform = run.model.field, run.dataset.transform
-        positions, levels = field.anchor_points()
-        colors = level_colors(levels, field.grid.num_levels)
-        rows = anchor_vertices(transform.points_to_colmap(positions), levels, field.anchor_features, colors)
-        path = self.output or run.run_dir / "exports" / "anchors.ply"
-        write_ply(path, rows)
-        counts = torch.bincount(levels.cpu(), minlength=field.grid.num_levels).tolist()
-        print(f"anchors: wrote {len(rows)} anchors (per level {counts}, "
-              f"{field.anchor_features.shape[1]} features) to {path}")
-        return path
-
-
-Target = Union[
-    Annotated[ExportGaussians, tyro.conf.subcommand("gaussians")],
-    Annotated[ExportAnchors, tyro.conf.subcommand("anchors")],
-    Annotated[MeshExportConfig, tyro.conf.subcommand("mesh")],
-]
-
-
-@dataclass
-class ExportArgs:
-    """Export a trained HiCo-GS run as PLY files (in the original COLMAP frame)."""
-
-    target: Target
+    target: TargetT
     load_config: Path
     """The run's config.yml (written by hico-train next to its checkpoints)."""
     checkpoint: Path | None = None
@@ -102,13 +42,30 @@ class ExportArgs:
     """Device to decode on (default: the run's)."""
 
 
-def parse(args: Sequence[str]) -> ExportArgs:
-    # Cascade: run options may follow the target name; no "target:" prefix on the target names.
-    return tyro.cli(ExportArgs, args=list(args), prog="hico-export",
+def exporter_defaults() -> dict[str, Any]:
+    """Name -> default instance of every registered exporter; one whose options lack defaults (a
+    plug-in's mistake) is left out with one warning naming it."""
+    defaults = {}
+    for name, exporter in EXPORTERS.items():
+        try:
+            defaults[name] = exporter()
+        except TypeError as err:
+            warnings.warn(f"exporter '{name}' ({exporter.__module__}) left out: every option needs a default ({err})",
+                          stacklevel=2)
+    return defaults
+
+
+def parse(args: Sequence[str]) -> ExportArgs[Any]:
+    defaults = exporter_defaults()
+    targets = tyro.extras.subcommand_type_from_defaults(
+        defaults, descriptions={name: inspect.getdoc(type(exporter)) or "" for name, exporter in defaults.items()},
+        prefix_names=False)
+    # Cascade: run options may follow the exporter name; no "target:" prefix on the exporter names.
+    return tyro.cli(ExportArgs[targets], args=list(args), prog="hico-export",
                     config=(tyro.conf.CascadeSubcommandArgs, tyro.conf.OmitSubcommandPrefixes))
 
 
-def main(args: ExportArgs) -> Path:
+def main(args: ExportArgs[Any]) -> Path:
     run = load_run(args.load_config, args.checkpoint, args.device)
     return args.target.run(run)
 

@@ -1,6 +1,7 @@
 """Exports of a trained run: PLY files (decoded Gaussians, anchors) and camera paths for videos.
 
-Public API::
+The exporters ``hico-export`` runs are registered components in ``export/exporters/`` (``EXPORTERS``);
+this package's top level holds what they and ``hico-render`` build on. Public API::
 
     write_ply(path, vertices) / read_ply(path)                     # binary little-endian PLY, atomic
     inria_vertices(means, quats, scales, opacities, colors, normals=None) -> (rows, DroppedRows)
