@@ -1,5 +1,6 @@
-"""Plug-ins from outside: a real distribution declaring a ``hico_plugin.components`` entry point adds
-an aggregator and a preset that ``hico-train`` lists and trains; a broken one is one warning."""
+"""Plug-ins from outside: a real distribution declaring ``hico_plugin.components`` entry points adds
+an aggregator and a preset that ``hico-train`` lists and trains, a loss that ``hico-train`` offers
+and logs, and an exporter that ``hico-export`` runs; a broken one is one warning."""
 
 from __future__ import annotations
 
@@ -65,6 +66,56 @@ def test_hico_train_lists_and_trains_the_plugin_preset(site, tmp_path):
     assert "kind: gated-mean" in text and "method_name: example-gated" in text
     assert json.loads((out / "eval.json").read_text())["results"]["step"] == 2
     assert "eval: psnr" in trained.stdout
+
+
+def _train_tiny(site: Path, cwd: Path, out: Path, *flags: str, steps: int = 3) -> subprocess.CompletedProcess:
+    return _run([_cli("hico-train"), "hico-gs-lite", "--scene", "tiny", "--max-steps", str(steps), "--log-every", "1",
+                 "--vis", "none", "--progress", "none", "--output-dir", str(out), "--model.eval-lpips", "none",
+                 "--model.renderer.no-use-compile", *flags], site, cwd)
+
+
+def _logged_terms(run: Path) -> set[str]:
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    return {key for record in records for key in record if key.startswith("loss/")}
+
+
+def test_a_plugin_loss_is_an_option_of_every_preset_and_adds_its_term(site, tmp_path):
+    listed = _run([_cli("hico-train"), "hico-gs-lite", "--help"], site, tmp_path)
+    assert listed.returncode == 0, listed.stderr
+    assert "--model.losses.opacity-entropy.enabled" in listed.stdout
+    assert "--model.losses.opacity-entropy.weight" in listed.stdout
+
+    plain = _train_tiny(site, tmp_path, tmp_path / "plain")
+    assert plain.returncode == 0, plain.stderr
+    assert "loss/opacity_entropy" not in _logged_terms(tmp_path / "plain")  # offered, off unless asked for
+
+    on = _train_tiny(site, tmp_path, tmp_path / "on", "--model.losses.opacity-entropy.enabled",
+                     "--model.losses.opacity-entropy.weight", "0.5")
+    assert on.returncode == 0, on.stderr
+    assert {"loss/rgb_l1", "loss/rgb_dssim", "loss/opacity_entropy"} <= _logged_terms(tmp_path / "on")
+    records = [json.loads(line) for line in (tmp_path / "on" / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["loss/opacity_entropy"] > 0 for r in records if "loss/opacity_entropy" in r)
+    assert "weight: 0.5" in (tmp_path / "on" / "config.yml").read_text()
+
+
+def test_a_plugin_exporter_is_a_subcommand_of_hico_export(site, tmp_path):
+    listed = _run([_cli("hico-export"), "--help"], site, tmp_path)
+    assert listed.returncode == 0, listed.stderr
+    assert "camera-poses" in listed.stdout and "gaussians" in listed.stdout
+
+    run = tmp_path / "run"
+    assert _train_tiny(site, tmp_path, run, steps=1).returncode == 0  # its config.yml names the plug-in's loss
+    out = tmp_path / "poses.json"
+    exported = _run([_cli("hico-export"), "--load-config", str(run / "config.yml"), "camera-poses",
+                     "--output", str(out)], site, tmp_path)
+    assert exported.returncode == 0, exported.stderr
+    views = json.loads(out.read_text())["views"]
+    config = subprocess.run([sys.executable, "-c", "from hico_plugin.engine import load_run; "
+                             f"r = load_run({str(run / 'config.yml')!r}); print(len(r.dataset.cameras))"],
+                            cwd=tmp_path, capture_output=True, text=True,
+                            env=dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(site)])))
+    assert config.returncode == 0, config.stderr
+    assert len(views) == int(config.stdout.split()[-1]) and len(views[0]["viewmat"]) == 4
 
 
 def test_a_broken_plugin_is_one_warning_not_a_crash(tmp_path):
