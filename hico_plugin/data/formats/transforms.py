@@ -26,6 +26,7 @@ import pycolmap
 from hico_plugin.data import images as image_io
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
+from hico_plugin.data.seed_points import random_seed_points
 from hico_plugin.errors import HicoError
 
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "camera_model",
@@ -134,16 +135,7 @@ class TransformsFormat(DataFormat):
             xyz = np.array([p.xyz for p in ordered], dtype=np.float64)
             xyz = xyz @ to_original[:3, :3].T + to_original[:3, 3]
             return xyz, np.array([p.color for p in ordered], dtype=np.uint8)
-        # Random seed points inside the box around the cameras (3DGS's fallback); training then has to
-        # grow the geometry from scratch, which costs quality on real captures.
-        centres = np.stack([-vm[:3, :3].T @ vm[:3, 3] for vm in viewmats])
-        low, high = centres.min(axis=0), centres.max(axis=0)
-        middle, half = (low + high) / 2, np.maximum((high - low) / 2, 1e-3)
-        rng = np.random.default_rng(0)
-        points = middle + rng.uniform(-1.0, 1.0, size=(self.random_points, 3)) * half
-        notes.append(f"warning: {path.name} names no ply_file_path; seeding with {self.random_points} random points "
-                     "(run hico-process or add a sparse point cloud for better results)")
-        return points, np.full((self.random_points, 3), 128, dtype=np.uint8)
+        return random_seed_points(viewmats, self.random_points, path.name, "names no ply_file_path", notes)
 
 
 def _matrix(value: Any, shape: tuple[int, int], where: str) -> np.ndarray:
