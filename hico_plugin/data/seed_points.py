@@ -1,11 +1,18 @@
 """Seed points for formats that carry none (transforms.json without a PLY, Mega-NeRF).
 
-One decision for every such format: random points in the box around the cameras, with a warning.
+One decision for every such format: triangulate from the known poses (``data/triangulate.py``) or,
+when that is switched off or too few points triangulate, draw random points in the box around the
+cameras with a warning.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pycolmap
+
+from hico_plugin.data.triangulate import MIN_POINTS, triangulate_known_poses
 
 
 def camera_centres(viewmats: np.ndarray) -> np.ndarray:
@@ -32,3 +39,19 @@ def random_seed_points(viewmats: np.ndarray, count: int, source: str, reason: st
     notes.append(f"warning: {source} has no seed points and {reason}; seeding with {count} random "
                  "points (run hico-process for a COLMAP model with points)")
     return random_points(viewmats, count)
+
+
+def seed_points(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, pycolmap.Camera],
+                viewmats: np.ndarray, source: str, triangulate: bool, random_count: int,
+                notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Seed points of a posed image set without a point cloud: triangulated from the known poses
+    (``names`` are image paths relative to ``data_dir``), else ``random_count`` random points; the
+    warning for the fallback is appended to ``notes``. ``source`` names the dataset file in it."""
+    reason = "triangulation is off (--no-triangulate)"
+    if triangulate:
+        points, colors = triangulate_known_poses(data_dir, names, camera_ids, cameras, viewmats)
+        if len(points) >= MIN_POINTS:
+            notes.append(f"{source}: no seed points in the dataset; triangulated {len(points)} from the known poses")
+            return points, colors
+        reason = f"only {len(points)} points triangulated from the known poses (expected {MIN_POINTS}+)"
+    return random_seed_points(viewmats, random_count, source, reason, notes)

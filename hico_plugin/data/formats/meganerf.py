@@ -37,7 +37,7 @@ import torch
 from hico_plugin.data.checks import check_intrinsics
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
-from hico_plugin.data.seed_points import random_seed_points
+from hico_plugin.data.seed_points import seed_points
 from hico_plugin.errors import HicoError
 
 DRB_FROM_SOURCE = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # P above; P @ P = I
@@ -52,8 +52,11 @@ class MegaNerfFormat(DataFormat):
     """Mega-NeRF (Mill19, UrbanScene3D): DIR/coordinates.pt and DIR/{train,val}/{rgbs,metadata}/; val/
     is the test split."""
 
+    triangulate: bool = True
+    """The layout has no point cloud: triangulate seed points from the known poses (SIFT + matching on
+    the CPU, cached in the user cache directory) instead of drawing random ones."""
     random_points: int = 20_000
-    """Seed points drawn at random (with a warning): the layout has no point cloud."""
+    """Seed points drawn at random (with a warning) when triangulation is off or finds too few points."""
 
     def detect(self, data_dir: Path) -> bool:
         return (data_dir / "train" / "metadata").is_dir()
@@ -95,8 +98,8 @@ class MegaNerfFormat(DataFormat):
             raise HicoError(f"{data_dir / 'train' / 'metadata'}: no .pt files (expected one per training image)")
         viewmats = np.stack(viewmats)
         notes: list[str] = []
-        points, colors = random_seed_points(viewmats, self.random_points, f"{data_dir} (Mega-NeRF)",
-                                            "the layout carries none", notes)
+        points, colors = seed_points(data_dir, names, camera_ids, cameras, viewmats, f"{data_dir} (Mega-NeRF)",
+                                     self.triangulate, self.random_points, notes)
         return SceneRecord(
             names=names, image_paths=paths, camera_ids=camera_ids, cameras=cameras, viewmats=viewmats,
             points=points, point_colors=colors, notes=notes, test_names=test_names,
