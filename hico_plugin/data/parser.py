@@ -81,6 +81,9 @@ class DataParserConfig(InstantiateConfig):
     normalize: bool = True
     """Centre on the mean camera centre and scale the farthest camera to distance 1, so the scene's
     units (mm or km) do not matter."""
+    orient: bool = True
+    """With --normalize: rotate the scene so the cameras' mean up direction is +z (z-up whatever the
+    source's axes; the sky and ground effects and viewer assume it). Outputs are mapped back."""
     cache_mb: int = 2048
     """Budget of the in-memory cache of decoded images (LRU, in MB)."""
     cache_dir: Optional[Path] = None
@@ -134,9 +137,7 @@ class DataParserConfig(InstantiateConfig):
         points_world = torch.from_numpy(record.points)
         transform = SceneTransform.identity()
         if self.normalize:
-            rotations, translations = viewmats_world[:, :3, :3], viewmats_world[:, :3, 3:]
-            centres = -(rotations.transpose(1, 2) @ translations).squeeze(-1)
-            transform = SceneTransform.from_camera_centres(centres, fallback_points=points_world)
+            transform = SceneTransform.from_cameras(viewmats_world, fallback_points=points_world, orient=self.orient)
         pinholes = [sources[camera_id].pinhole for camera_id in record.camera_ids]
         cameras = Cameras(
             viewmats=transform.viewmats_from_colmap(viewmats_world).to(torch.float32),
