@@ -141,9 +141,13 @@ def test_a_pickle_that_would_run_code_is_refused(twin, tmp_path):
     copy, path = _broken_copy(twin, tmp_path)
     marker = tmp_path / "code-ran"
     torch.save({"H": _RunsCode(marker)}, path)
-    with pytest.raises(HicoError, match=r"000001\.pt: refused or unreadable .*weights_only=True"):
+    with pytest.raises(HicoError, match=r"000001\.pt: refused or unreadable .*weights_only=True") as info:
         DataParserConfig(data=copy).setup()
-    assert not marker.exists()
+    assert not marker.exists() and "\n" not in str(info.value)
+    path.write_bytes(path.read_bytes()[:100])  # truncated
+    with pytest.raises(HicoError, match=r"000001\.pt: refused or unreadable") as info:
+        DataParserConfig(data=copy).setup()
+    assert "\n" not in str(info.value)
     (copy / "coordinates.pt").unlink()
     with pytest.raises(HicoError, match=r"coordinates\.pt: not found"):
         DataParserConfig(data=copy).setup()

@@ -72,3 +72,18 @@ def test_points_triangulated_from_known_poses_lie_on_the_surface(twin, tmp_path,
     again = DataParserConfig(data=out, normalize=False).setup()
     assert "triangulating" not in capsys.readouterr().err
     assert np.array_equal(again.points.numpy(), dataset.points.numpy())
+
+
+def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, monkeypatch, capsys):
+    """Mega-NeRF carries no points: they are triangulated from its (DRB, shifted, scaled) poses and
+    come out in the source frame, on the scene's surface."""
+    from test_data_meganerf import write_meganerf
+
+    scene, _ = twin
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    write_meganerf(scene, tmp_path / "mega")
+    dataset = DataParserConfig(data=tmp_path / "mega", normalize=False).setup()
+    assert "random" not in capsys.readouterr().err
+    distance = _surface_distances(scene, dataset.points.double().numpy())
+    assert len(distance) >= MIN_POINTS
+    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
