@@ -56,6 +56,24 @@ def test_exposure_gains_match_the_generator():
     assert per_image[0]["image"] == dataset.image_names[0]
 
 
+def test_appearance_starts_from_the_measured_gains():
+    from hico_plugin.model.hico import HiCoModelConfig
+
+    path, dataset = _load("pagoda", {"exposure": True, "sky": True, "sensor_noise": False})
+    model = HiCoModelConfig(effects="auto,sky=off,lod=off").setup(dataset=dataset, total_steps=100)
+    assert model.colour is not None
+    true = np.log2(np.array(json.loads((path / "scene.json").read_text())["exposure_gains"]))
+    true = (true - true.mean(axis=0))[dataset.train_indices.numpy()]
+    start = torch.diagonal(model.colour.matrix.detach(), dim1=1, dim2=2).log2().numpy()
+    assert np.abs(start - true).max() < 0.1
+    assert torch.count_nonzero(model.colour.matrix.detach() - torch.diag_embed(torch.diagonal(
+        model.colour.matrix.detach(), dim1=1, dim2=2))) == 0 and not model.colour.bias.any()
+    # an unknown gain (too few shared points) starts at identity
+    colour = AffineColour(2, torch.tensor([[float("nan")] * 3, [1.0, 0.0, -1.0]]))
+    assert torch.equal(colour.matrix[0], torch.eye(3))
+    assert torch.equal(colour.matrix[1], torch.diag(torch.tensor([2.0, 1.0, 0.5])))
+
+
 def test_cc_psnr_discounts_an_affine_colour_change_and_nerfw_scores_the_other_half():
     torch.manual_seed(0)
     render = torch.rand(24, 32, 3) * 0.8

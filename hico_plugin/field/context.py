@@ -10,8 +10,8 @@ finer one. The parent relation (``ContextConfig.parent_rule``) decides which anc
   trilinear weights (0 / 1 or 1/2 per axis for b = 2); c_parent is the weighted mean of the present
   ones, weights renormalised. A level-l anchor made from a point x (octree.voxelize) always has a
   level-(l-1) anchor made from the same x among these candidates (x is within v_l / 2 of k v_l, so it
-  rounds to one of them one level up): the levels nest, and a parent is absent only where LOD,
-  frustum culling, densification or pruning removed it. Chosen over cell-centre anchors because it
+  rounds to one of them one level up): the levels nest, and densification keeps them nested
+  (``DensifyConfig.keep_ancestors``), so a parent is absent only where LOD or frustum culling hid it. Chosen over cell-centre anchors because it
   keeps the base method's grid, voxelisation, checkpoints and LOD exactly as they are.
   A context that is truly absent (coarsest level, no candidate visible, no finer anchor) is a learned
   ``missing`` vector per role (parent, child), so the MLP can tell "no context" from "same context".

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.field.context import dense_cell_ids
+from hico_plugin.field.context import dense_cell_ids, parent_edges
 from hico_plugin.field.octree import OctreeGrid, visibility_fraction
 
 
@@ -46,6 +46,12 @@ class DensifyConfig(InstantiateConfig):
     """Prune anchors whose mean summed child opacity per view is below this."""
     max_log_scale: float = 0.05
     """On every prune, the anchors' log scale factors s[3:6] are clamped to at most this."""
+    keep_ancestors: bool = True
+    """Keep the octree a tree for CLCA's trilinear lookup: after growing and pruning, an anchor none of
+    whose candidate parents holds an anchor gets one back (a pruned one is kept, else a new anchor at
+    its nearest parent grid point, with its feature). Without it, grown and pruned anchors left 10-15 %
+    of a trained pagoda's level 1-3 anchors without parent context. Used only when CLCA is on with
+    the trilinear rule (the paper's lookup and the base method densify as published)."""
 
 
 def offset_gradients(grad_accum: Tensor, denom: Tensor, min_observations: float) -> tuple[Tensor, Tensor]:
@@ -134,3 +140,76 @@ def prune_decision(opacity_accum: Tensor, anchor_denom: Tensor, min_opacity: flo
     pruned when their accumulated opacity < min_opacity x views."""
     judged = anchor_denom > min_views
     return judged & (opacity_accum < min_opacity * anchor_denom), judged
+
+
+def orphan_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Anchors above level 0 none of whose trilinear candidate parents holds an anchor.
+
+    levels [N] long, positions [N,3] -> (orphan [N] bool, and the orphans' candidate edges: anchor [E]
+    long, parent key [E,4] long (level, index), weight [E]).
+    """
+    anchor, parent_index, weight = parent_edges(levels, positions, grid, "trilinear")
+    self_keys = torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
+    parent_keys = torch.cat([levels[anchor, None] - 1, parent_index], 1)
+    ids, num_cells = dense_cell_ids(torch.cat([self_keys, parent_keys]))
+    occupied = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
+    occupied[ids[: levels.shape[0]]] = True
+    has_parent = torch.zeros_like(occupied[: levels.shape[0]])
+    has_parent[anchor[occupied[ids[levels.shape[0]:]]]] = True
+    orphan = (levels > 0) & ~has_parent
+    on_orphan = orphan[anchor]
+    return orphan, anchor[on_orphan], parent_keys[on_orphan], weight[on_orphan]
+
+
+def close_ancestors(positions: Tensor, levels: Tensor, features: Tensor, keep: Tensor, grown: GrownAnchors,
+                    grid: OctreeGrid) -> tuple[Tensor, GrownAnchors]:
+    """Give every kept or grown anchor a parent (see ``DensifyConfig.keep_ancestors``).
+
+    positions [N,3], levels [N], features [N,d]: the current anchors; keep [N] bool: survives pruning;
+    grown: the new anchors. Returns (keep [N] with pruned parents revived, grown with new parents
+    appended). A pruned anchor in a candidate parent cell is revived (it keeps its training); an
+    orphan with none gets a new anchor at its highest-weight candidate, whose own parent is then
+    checked in the next round: at most num_levels - 1 rounds.
+    """
+    keep = keep.clone()
+    extra_positions, extra_levels, extra_features = [grown.positions], [grown.levels], [grown.features]
+    dead_keys = torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
+    for _ in range(grid.num_levels - 1):
+        all_positions = torch.cat([positions[keep], *extra_positions])
+        all_levels = torch.cat([levels[keep], *extra_levels])
+        all_features = torch.cat([features[keep], *extra_features])
+        orphan, anchor, parent_keys, weight = orphan_edges(all_levels, all_positions, grid)
+        if not orphan.any():
+            break
+        # revive pruned anchors sitting in a candidate parent cell of an orphan
+        dead = (~keep).nonzero().squeeze(1)
+        ids, num_cells = dense_cell_ids(torch.cat([parent_keys, dead_keys[dead]]))
+        wanted = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
+        wanted[ids[: parent_keys.shape[0]]] = True
+        revive = dead[wanted[ids[parent_keys.shape[0]:]]]
+        keep[revive] = True
+        available = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
+        available[ids[parent_keys.shape[0]:][wanted[ids[parent_keys.shape[0]:]]]] = True
+        served = torch.zeros_like(orphan)
+        served[anchor[available[ids[: parent_keys.shape[0]]]]] = True
+        # the rest: a new anchor at each remaining orphan's highest-weight candidate (first on ties)
+        pending = orphan & ~served
+        if pending.any():
+            on_pending = pending[anchor]
+            edge_anchor, edge_keys, edge_weight = anchor[on_pending], parent_keys[on_pending], weight[on_pending]
+            num = orphan.shape[0]
+            top = edge_weight.new_zeros(num).scatter_reduce(0, edge_anchor, edge_weight, "amax", include_self=False)
+            is_top = edge_weight == top[edge_anchor]
+            edge_ids = torch.arange(edge_anchor.shape[0], device=levels.device)
+            first_top = torch.full((num,), edge_anchor.shape[0], dtype=torch.long, device=levels.device)
+            first_top = first_top.scatter_reduce(0, edge_anchor[is_top], edge_ids[is_top], "amin")
+            rows = first_top[pending]
+            cells, slot = torch.unique(edge_keys[rows], dim=0, return_inverse=True)
+            new_features = features.new_zeros(cells.shape[0], features.shape[1]).scatter_reduce(
+                0, slot[:, None].expand(-1, features.shape[1]), all_features[pending], "amax",
+                include_self=False)
+            extra_levels.append(cells[:, 0])
+            extra_positions.append(grid.grid_position(cells[:, 1:], cells[:, 0], positions.dtype))
+            extra_features.append(new_features)
+    return keep, GrownAnchors(torch.cat(extra_positions), torch.cat(extra_levels), torch.cat(extra_features))
+

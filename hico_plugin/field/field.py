@@ -36,7 +36,7 @@ from hico_plugin.errors import HicoError
 from hico_plugin.field.context import ContextConfig
 from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
 from hico_plugin.field.densify import (
-    DensifyConfig, extra_level_increment, grow_anchors, offset_gradients, prune_decision)
+    DensifyConfig, close_ancestors, extra_level_increment, grow_anchors, offset_gradients, prune_decision)
 from hico_plugin.field.lod import active_level_count, frustum_visible, lod_visible, progressive_interval_ends
 from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree, knn_log_scale
 
@@ -133,6 +133,9 @@ class AnchorField(nn.Module):
         for name in STAT_BUFFERS:
             self.register_buffer(f"{name}_synced", getattr(self, name).clone())
         self.context = config.context.setup(feature_dim=d)
+        # The tree is kept only for the lookup that relies on it (DensifyConfig.keep_ancestors).
+        self.keeps_ancestors = (config.densify.keep_ancestors and config.context.kind != "none"
+                                and config.context.parent_rule == "trilinear")
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
         self.set_total_steps(total_steps)
         self.last_densify: dict[str, int] = {}
@@ -273,6 +276,10 @@ class AnchorField(nn.Module):
         self.offset_grad_accum[eligible] = 0
         self.offset_denom[eligible] = 0
         prune, judged = prune_decision(self.opacity_accum, self.anchor_denom, cfg.min_opacity, check_views)
+        if self.keeps_ancestors:
+            keep, grown = close_ancestors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
+                                          ~prune, grown, self.grid)
+            prune = ~keep
         self.opacity_accum[judged] = 0
         self.anchor_denom[judged] = 0
         self.stat_views.zero_()

@@ -9,6 +9,11 @@ models spatially varying tone mapping these captures do not need) and over the d
 embedding (it feeds the colour MLP, so per-photo changes can leak into view-dependent colour and
 cost every decoded Gaussian a wider MLP). Views that are not training photos (test, viewer) render
 without a transform: their exposure is unknown, which the colour-corrected metrics account for.
+
+Each transform starts from the photo's gains that the data analysis measured from shared sparse
+points (``EffectsReport.log2_gains``), not from identity: starting from identity, the scene learns
+the photos' disagreement in its first few hundred steps, faster than 12 numbers per photo move,
+and keeps part of it baked in.
 """
 
 from __future__ import annotations
@@ -25,10 +30,16 @@ class AffineColour(nn.Module):
 
     finding = "exposure"
 
-    def __init__(self, num_train_views: int):
+    def __init__(self, num_train_views: int, log2_gains: Tensor | None = None):
+        """``log2_gains`` [C,3]: measured per-channel gain of each training photo (NaN = unknown,
+        starts at identity)."""
         super().__init__()
-        self.matrix = nn.Parameter(torch.eye(3).repeat(max(1, num_train_views), 1, 1))  # [C,3,3]
-        self.bias = nn.Parameter(torch.zeros(max(1, num_train_views), 3))  # [C,3]
+        count = max(1, num_train_views)
+        gains = torch.ones(count, 3)
+        if log2_gains is not None:
+            gains[: len(log2_gains)] = torch.nan_to_num(2.0 ** log2_gains.float(), nan=1.0)
+        self.matrix = nn.Parameter(torch.diag_embed(gains))  # [C,3,3]
+        self.bias = nn.Parameter(torch.zeros(count, 3))  # [C,3]
 
     def forward(self, rgb: Tensor, slot: int) -> Tensor:
         """rgb [H,W,3] -> [H,W,3]."""

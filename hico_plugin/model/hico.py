@@ -119,9 +119,17 @@ class HiCoModel(nn.Module):
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
         self.sky = config.sky.setup() if "sky" in on else None
-        self.colour = AffineColour(len(train_ids)) if "exposure" in on else None
+        self.colour = (AffineColour(len(train_ids), self._measured_gains(train_ids)) if "exposure" in on
+                       else None)
         self.last_num_gaussians = 0
         self.context_enabled = True  # the viewer's CLCA toggle; training always uses the config
+
+    def _measured_gains(self, train_ids: Tensor) -> Tensor | None:
+        """[C,3] log2 gains of the training photos from the data analysis (None when exposure was
+        forced on without an analysis)."""
+        if self.effects_report is None:
+            return None
+        return torch.from_numpy(self.effects_report.log2_gains(train_ids.tolist()))
 
     # ----- rendering ------------------------------------------------------------------------------
 
