@@ -113,7 +113,6 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = num_threads
     options.random_seed = 0  # RANSAC in the triangulator: same inputs, same points
-    options.triangulation.ignore_two_view_tracks = True
     result = pycolmap.triangulate_points(reconstruction, database, data_dir, work / "model", options=options)
     ordered = [result.points3D[i] for i in sorted(result.points3D)]
     if not ordered:
