@@ -330,14 +330,24 @@ def test_byte_lru_cache_evicts_least_recently_used():
 
 
 def test_scene_transform_round_trip_and_dict():
-    transform = SceneTransform(torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64), 0.25)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)))
+    rotation = q * torch.sign(torch.linalg.det(q))
+    transform = SceneTransform(torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64), 0.25, rotation)
     points = torch.randn(5, 3, dtype=torch.float64)
     assert torch.allclose(transform.points_to_colmap(transform.points_from_colmap(points)), points)
     viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64))[0]
     viewmat[:3, 3] = torch.tensor([0.5, 0.1, 2.0])
-    assert torch.allclose(transform.viewmats_to_colmap(transform.viewmats_from_colmap(viewmat)), viewmat)
+    normalised = transform.viewmats_from_colmap(viewmat)
+    assert torch.allclose(transform.viewmats_to_colmap(normalised), viewmat)
+    # a point seen by the camera in either frame: same camera-space direction, depth times the scale
+    camera_colmap = viewmat[:3, :3] @ points.T + viewmat[:3, 3:]
+    camera_normalised = normalised[:3, :3] @ transform.points_from_colmap(points).T + normalised[:3, 3:]
+    assert torch.allclose(camera_normalised, camera_colmap * transform.scale)
     again = SceneTransform.from_dict(transform.to_dict())
     assert torch.equal(again.centre, transform.centre) and again.scale == transform.scale
+    assert torch.equal(again.rotation, transform.rotation)
+    assert torch.equal(SceneTransform.from_dict({"centre": [0, 0, 0], "scale": 2.0}).rotation, torch.eye(3, dtype=torch.float64))
 
 
 def test_builtin_tiny_scene_ground_truth_agrees_with_normalised_cameras(tmp_path):

@@ -13,7 +13,9 @@ import torch
 
 from hico_plugin.cli.train import parse as parse_train
 from hico_plugin.cli.train import train
+from hico_plugin.analysis.effects import up_vector
 from hico_plugin.data import DATA_FORMATS, DataParserConfig
+from hico_plugin.data.transform import cameras_up
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes.generate import generate_scene
 
@@ -139,3 +141,27 @@ def test_scene_units_do_not_matter(tmp_path, factor):
     assert torch.allclose(original.cameras.viewmats, rescaled.cameras.viewmats, atol=1e-5)
     assert torch.allclose(original.points, rescaled.points, atol=1e-5)
     assert original.cameras_extent() == pytest.approx(rescaled.cameras_extent(), rel=1e-5)
+
+
+def test_scene_is_oriented_up_from_the_cameras(tmp_path):
+    """A built-in scene turned by a random rotation loads z-up like the original: the cameras' mean up
+    is +z, and heights (z) of cameras and points match; only the heading about z may differ."""
+    scene = generate_scene("tiny", tmp_path / "scene")
+    turned = tmp_path / "turned"
+    shutil.copytree(scene / "images", turned / "images")
+    model = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    q, _ = np.linalg.qr(np.random.default_rng(7).normal(size=(3, 3)))
+    rotation = q * np.sign(np.linalg.det(q))
+    model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rotation), np.array([2.0, -1.0, 0.5])))
+    (turned / "sparse" / "0").mkdir(parents=True)
+    model.write_binary(str(turned / "sparse" / "0"))
+    original, rotated = DataParserConfig(data=scene).setup(), DataParserConfig(data=turned).setup()
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    for dataset in (original, rotated):
+        assert torch.allclose(cameras_up(dataset.cameras.viewmats), up, atol=1e-5)
+        assert np.allclose(up_vector(dataset), up.numpy(), atol=1e-5)
+    assert torch.allclose(original.cameras.centers[:, 2], rotated.cameras.centers[:, 2], atol=1e-5)
+    assert torch.allclose(original.points[:, 2], rotated.points[:, 2], atol=1e-5)
+    # without --orient the turned scene keeps its tilted up
+    tilted = DataParserConfig(data=turned, orient=False).setup()
+    assert float(cameras_up(tilted.cameras.viewmats) @ up) < 0.99

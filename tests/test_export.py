@@ -102,14 +102,19 @@ def test_inria_rows_drop_and_count_bad_rows_and_round_trip(tmp_path):
 
 
 def test_colmap_frame_undoes_the_normalisation():
-    colmap_means = torch.tensor([[10.0, -4.0, 2.0], [3.0, 3.0, 3.0]], dtype=torch.float64)
+    colmap_means = torch.tensor([[10.0, -4.0, 2.0], [3.0, 3.0, 3.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
     centre = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
-    transform = SceneTransform(centre, 0.25)
+    transform = SceneTransform(centre, 0.25, _random_rotations(1, seed=3)[0])
     normalised = transform.points_from_colmap(colmap_means)
-    scales = torch.tensor([[0.1, 0.2, 0.3], [1.0, 1.0, 1.0]], dtype=torch.float64)
-    means, colmap_scales = gaussians_to_colmap(normalised, scales, transform)
+    scales = torch.tensor([[0.1, 0.2, 0.3], [1.0, 1.0, 1.0], [1.0, 2.0, 3.0]], dtype=torch.float64)
+    colmap_axes = _random_rotations(3, seed=4)
+    quats = rotmat_to_quat(transform.rotation @ colmap_axes) * torch.tensor([[2.0], [0.5], [0.0]], dtype=torch.float64)
+    means, colmap_quats, colmap_scales = gaussians_to_colmap(normalised, quats, scales, transform)
     torch.testing.assert_close(means, colmap_means)
     torch.testing.assert_close(colmap_scales, scales * 4)
+    assert colmap_quats[2].abs().max() == 0  # a zero quaternion stays zero (the exporter drops it)
+    unit = torch.nn.functional.normalize(colmap_quats[:2], dim=-1)
+    torch.testing.assert_close(quat_to_rotmat(unit), colmap_axes[:2], atol=1e-12, rtol=0)
 
 
 def test_anchor_rows_hold_positions_levels_features_colours():

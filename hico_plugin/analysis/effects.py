@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import torch
 
+from hico_plugin.data.transform import cameras_up
 from hico_plugin.data.undistort import PINHOLE_MODELS
 
 # exposure: a photo whose exposure differs from the mean by more than this (robust std over photos,
@@ -306,10 +307,8 @@ def _exposure_finding(gains: np.ndarray) -> EffectFinding:
 
 
 def up_vector(dataset: Any) -> np.ndarray:
-    """The cameras' mean up direction in the world frame [3] (COLMAP cameras look along +z, y down)."""
-    rotations = dataset.cameras.viewmats[:, :3, :3].double().numpy()
-    up = -rotations[:, 1, :].mean(axis=0)  # row 1 of world->camera R is the camera y axis in world
-    return up / max(np.linalg.norm(up), 1e-12)
+    """The cameras' mean up direction [3] in the dataset's (normalised, so z-up when oriented) frame."""
+    return cameras_up(dataset.cameras.viewmats).numpy()
 
 
 def sky_cells(dataset: Any, view: int, points: np.ndarray, up: np.ndarray) -> np.ndarray:

@@ -20,6 +20,7 @@ from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
 from hico_plugin.data.dataset import CameraSource, Dataset
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.formats.colmap import ColmapFormat
+from hico_plugin.data.formats.meganerf import MegaNerfFormat
 from hico_plugin.data.formats.transforms import TransformsFormat
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.splits import extrapolation_split, sparse_views
@@ -31,7 +32,7 @@ from hico_plugin.errors import HicoError
 # None = detect. Listed here rather than read from DATA_FORMATS: reading a registry at import loads
 # plug-ins, which may import this module. A plug-in's format is found by detection.
 FormatChoice = Optional[tyro.extras.subcommand_type_from_defaults(
-    {"colmap": ColmapFormat(), "transforms": TransformsFormat()}, prefix_names=False)]
+    {"colmap": ColmapFormat(), "meganerf": MegaNerfFormat(), "transforms": TransformsFormat()}, prefix_names=False)]
 
 
 def detect_format(data_dir: Path) -> DataFormat:
@@ -63,7 +64,8 @@ class DataParserConfig(InstantiateConfig):
     max_long_side: int = 1600
     """Longest image side in pixels that --downscale 0 aims for (nerfstudio's default)."""
     test_every: int = 8
-    """Every Nth view (sorted by name, index % N == 0) goes to the test split; 0 = no test split."""
+    """Every Nth view (sorted by name, index % N == 0) goes to the test split; 0 = no test split. A
+    layout with its own held-out views (Mega-NeRF val/) uses those instead."""
     test_names: tuple[str, ...] = ()
     """Explicit test image names; when given, they replace --test-every."""
     test_list: Optional[Path] = None
@@ -79,6 +81,9 @@ class DataParserConfig(InstantiateConfig):
     normalize: bool = True
     """Centre on the mean camera centre and scale the farthest camera to distance 1, so the scene's
     units (mm or km) do not matter."""
+    orient: bool = True
+    """With --normalize: rotate the scene so the cameras' mean up direction is +z (z-up whatever the
+    source's axes; the sky and ground effects and viewer assume it). Outputs are mapped back."""
     cache_mb: int = 2048
     """Budget of the in-memory cache of decoded images (LRU, in MB)."""
     cache_dir: Optional[Path] = None
@@ -112,7 +117,7 @@ class DataParserConfig(InstantiateConfig):
             )
         downscale = self.downscale or self._auto_downscale(record)
         image_paths = [self._downscaled_path(path, downscale) for path in record.image_paths]
-        train_indices, test_indices = self._split(record.names)
+        train_indices, test_indices = self._split(record.names, record.test_names)
         if self.split == "extrapolate":
             rotations, translations = record.viewmats[:, :3, :3], record.viewmats[:, :3, 3:]
             centres = -(np.transpose(rotations, (0, 2, 1)) @ translations)[..., 0]
@@ -132,9 +137,7 @@ class DataParserConfig(InstantiateConfig):
         points_world = torch.from_numpy(record.points)
         transform = SceneTransform.identity()
         if self.normalize:
-            rotations, translations = viewmats_world[:, :3, :3], viewmats_world[:, :3, 3:]
-            centres = -(rotations.transpose(1, 2) @ translations).squeeze(-1)
-            transform = SceneTransform.from_camera_centres(centres, fallback_points=points_world)
+            transform = SceneTransform.from_cameras(viewmats_world, fallback_points=points_world, orient=self.orient)
         pinholes = [sources[camera_id].pinhole for camera_id in record.camera_ids]
         cameras = Cameras(
             viewmats=transform.viewmats_from_colmap(viewmats_world).to(torch.float32),
@@ -182,14 +185,18 @@ class DataParserConfig(InstantiateConfig):
         candidate = self.data / f"{parts[0]}_{factor}" / Path(*parts[1:]) if len(parts) > 1 else None
         return candidate if candidate is not None and candidate.is_file() else path
 
-    def _split(self, names: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
-        """(train, test) LongTensors of view indices (views are sorted by name)."""
+    def _split(self, names: list[str], layout_test_names: list[str] | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(train, test) LongTensors of view indices (views are sorted by name). The layout's own
+        held-out views (Mega-NeRF val/), when it has them, replace --test-every; --test-names and
+        --test-list replace both."""
         test_names = self.test_names
         if self.test_list is not None:
             try:
                 test_names = tuple(line.strip() for line in self.test_list.read_text().splitlines() if line.strip())
             except OSError as err:
                 raise HicoError(f"--test-list {self.test_list}: cannot be read ({err.strerror or err})") from None
+        if not test_names and self.test_list is None and layout_test_names:
+            test_names = tuple(layout_test_names)
         if test_names:
             position = {name: i for i, name in enumerate(names)}
             unknown = [name for name in test_names if name not in position]

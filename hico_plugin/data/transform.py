@@ -1,67 +1,106 @@
 """The scene normalisation: COLMAP's world frame <-> the normalised frame training works in.
 
-``world_normalised = (world_colmap - centre) * scale``. Camera frames are scaled with the world so
-viewmats stay rigid: a viewmat ``[R | t]`` in COLMAP's frame becomes ``[R | scale * (R @ centre + t)]``,
-and camera-space depths are multiplied by ``scale``.
+``world_normalised = rotation @ (world_colmap - centre) * scale``: the rotation turns the cameras'
+mean up direction to +z, the centre and scale make the cameras' spread a unit sphere, so a model in
+millimetres or kilometres, z-up or y-down, trains the same. Camera frames are scaled with the world
+so viewmats stay rigid: a viewmat ``[R | t]`` in COLMAP's frame becomes
+``[R @ rotation.T | scale * (R @ centre + t)]``, and camera-space depths are multiplied by ``scale``
+(camera-space normals are unchanged).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 
+def cameras_up(viewmats: Tensor) -> Tensor:
+    """The cameras' mean up direction [3] (unit, float64) from world->camera viewmats [C, 4, 4]
+    (OpenCV axes: a camera's up is its -y axis, row 1 of R negated)."""
+    up = -viewmats[:, 1, :3].to(torch.float64).mean(dim=0)
+    return up / up.norm().clamp_min(1e-12)
+
+
+def rotation_to_z(direction: Tensor) -> Tensor:
+    """The smallest rotation [3, 3] float64 taking the unit vector ``direction`` [3] to +z (a half
+    turn about x when it points down)."""
+    direction = direction.to(torch.float64)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    axis = torch.linalg.cross(direction, z)
+    cos, sin = float(direction @ z), float(axis.norm())
+    if sin < 1e-12:
+        return torch.eye(3, dtype=torch.float64) if cos > 0 else torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    k = axis / sin
+    cross = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + sin * cross + (1.0 - cos) * cross @ cross
+
+
 @dataclass
 class SceneTransform:
-    """Similarity (centre, isotropic scale) from COLMAP's world frame to the normalised frame."""
+    """Similarity (rotation, centre, isotropic scale) from COLMAP's world frame to the normalised frame."""
 
     centre: Tensor  # [3] float64, in COLMAP units
     scale: float  # normalised units per COLMAP unit
+    rotation: Tensor = field(default_factory=lambda: torch.eye(3, dtype=torch.float64))  # [3, 3] COLMAP -> normalised axes
 
     @classmethod
     def identity(cls) -> SceneTransform:
         return cls(torch.zeros(3, dtype=torch.float64), 1.0)
 
     @classmethod
-    def from_camera_centres(cls, centres: Tensor, fallback_points: Tensor | None = None) -> SceneTransform:
-        """nerfstudio's auto-scale: centre on the mean camera centre, scale so the farthest camera
-        centre lies at distance 1 (``centres``: [C, 3]). With one camera (or all cameras at one
-        spot) the spread of ``fallback_points`` [P, 3] sets the scale instead."""
-        centres = centres.to(torch.float64)
+    def from_cameras(cls, viewmats: Tensor, fallback_points: Tensor | None = None, orient: bool = True) -> SceneTransform:
+        """The scene normalisation, decided here only (nerfstudio's auto-orient and auto-scale):
+        rotate the cameras' mean up to +z (``orient``), centre on the mean camera centre, scale so
+        the farthest camera centre lies at distance 1 (``viewmats``: [C, 4, 4] world->camera). With
+        one camera (or all at one spot) the spread of ``fallback_points`` [P, 3] sets the scale."""
+        viewmats = viewmats.to(torch.float64)
+        rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3:]
+        centres = -(rotations.transpose(1, 2) @ translations).squeeze(-1)
         centre = centres.mean(dim=0)
         radius = float((centres - centre).norm(dim=-1).max())
         if radius <= 1e-9 and fallback_points is not None and len(fallback_points) > 0:
             radius = float((fallback_points.to(torch.float64) - centre).norm(dim=-1).median())
-        return cls(centre, 1.0 / radius if radius > 1e-9 else 1.0)
+        rotation = rotation_to_z(cameras_up(viewmats)) if orient else torch.eye(3, dtype=torch.float64)
+        return cls(centre, 1.0 / radius if radius > 1e-9 else 1.0, rotation)
 
     def points_from_colmap(self, points: Tensor) -> Tensor:
         """[..., 3] COLMAP world -> [..., 3] normalised (dtype of ``points``)."""
-        return ((points.to(torch.float64) - self.centre.to(points.device)) * self.scale).to(points.dtype)
+        centred = points.to(torch.float64) - self.centre.to(points.device)
+        return (centred @ self.rotation.to(points.device).T * self.scale).to(points.dtype)
 
     def points_to_colmap(self, points: Tensor) -> Tensor:
         """[..., 3] normalised -> [..., 3] COLMAP world (dtype of ``points``)."""
-        return (points.to(torch.float64) / self.scale + self.centre.to(points.device)).to(points.dtype)
+        rotated = points.to(torch.float64) @ self.rotation.to(points.device)
+        return (rotated / self.scale + self.centre.to(points.device)).to(points.dtype)
+
+    def directions_to_colmap(self, directions: Tensor) -> Tensor:
+        """[..., 3] directions (normals, axes) in normalised axes -> COLMAP's axes (dtype kept)."""
+        return (directions.to(torch.float64) @ self.rotation.to(directions.device)).to(directions.dtype)
 
     def viewmats_from_colmap(self, viewmats: Tensor) -> Tensor:
         """[..., 4, 4] world->camera in COLMAP's frame -> the same cameras in the normalised frame."""
         out = viewmats.to(torch.float64).clone()
-        rot = out[..., :3, :3]
+        rot = out[..., :3, :3].clone()
         out[..., :3, 3] = self.scale * (rot @ self.centre.to(out.device) + out[..., :3, 3])
+        out[..., :3, :3] = rot @ self.rotation.to(out.device).T
         return out.to(viewmats.dtype)
 
     def viewmats_to_colmap(self, viewmats: Tensor) -> Tensor:
         """[..., 4, 4] world->camera in the normalised frame -> COLMAP's frame."""
         out = viewmats.to(torch.float64).clone()
-        rot = out[..., :3, :3]
+        rot = out[..., :3, :3] @ self.rotation.to(out.device)
+        out[..., :3, :3] = rot
         out[..., :3, 3] = out[..., :3, 3] / self.scale - rot @ self.centre.to(out.device)
         return out.to(viewmats.dtype)
 
     def to_dict(self) -> dict:
         """JSON-friendly form (written next to outputs so they can be mapped back)."""
-        return {"centre": [float(v) for v in self.centre], "scale": float(self.scale)}
+        return {"centre": [float(v) for v in self.centre], "scale": float(self.scale),
+                "rotation": [[float(v) for v in row] for row in self.rotation]}
 
     @classmethod
     def from_dict(cls, data: dict) -> SceneTransform:
-        return cls(torch.tensor(data["centre"], dtype=torch.float64), float(data["scale"]))
+        rotation = torch.tensor(data.get("rotation", torch.eye(3).tolist()), dtype=torch.float64)
+        return cls(torch.tensor(data["centre"], dtype=torch.float64), float(data["scale"]), rotation)

@@ -6,7 +6,7 @@ this package's top level holds what they and ``hico-render`` build on. Public AP
     write_ply(path, vertices) / read_ply(path)                     # binary little-endian PLY, atomic
     inria_vertices(means, quats, scales, opacities, colors, normals=None) -> (rows, DroppedRows)
     anchor_vertices(positions, levels, features, colors=None) -> rows
-    gaussians_to_colmap(means, scales, transform) -> (means, scales)
+    gaussians_to_colmap(means, quats, scales, transform) -> (means, quats, scales)
     orbit_path(cameras, num_frames) / interpolate_path(cameras, num_frames) -> Cameras
 """
 

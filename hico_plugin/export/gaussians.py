@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.data.transform import SceneTransform
+from hico_plugin.export.camera_paths import rotmat_to_quat
 from hico_plugin.rasterizer.geometry import gaussian_normals
 
 SH_C0 = 0.28209479177387814
@@ -41,10 +42,17 @@ class DroppedRows:
         return self.non_finite + self.zero_quaternion + self.transparent
 
 
-def gaussians_to_colmap(means: Tensor, scales: Tensor, transform: SceneTransform) -> tuple[Tensor, Tensor]:
-    """Undo the scene normalisation (a translation and isotropic scale; rotations are unchanged):
-    means [N, 3], scales [N, 3] (linear) in the normalised frame -> the same in COLMAP's frame."""
-    return transform.points_to_colmap(means), scales / transform.scale
+def gaussians_to_colmap(means: Tensor, quats: Tensor, scales: Tensor,
+                        transform: SceneTransform) -> tuple[Tensor, Tensor, Tensor]:
+    """Undo the scene normalisation (rotation, translation, isotropic scale): means [N, 3], quats
+    [N, 4] (w, x, y, z, any norm; a zero quaternion stays zero) and scales [N, 3] (linear) in the
+    normalised frame -> the same in COLMAP's frame."""
+    back = rotmat_to_quat(transform.rotation.T.to(quats.device, torch.float64))  # normalised -> COLMAP axes
+    w1, x1, y1, z1 = back.to(quats.dtype).unbind(-1)
+    w2, x2, y2, z2 = quats.unbind(-1)
+    rotated = torch.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                           w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
+    return transform.points_to_colmap(means), rotated, scales / transform.scale
 
 
 def facing_normals(means: Tensor, quats: Tensor, scales: Tensor, eye: Tensor) -> Tensor:

@@ -26,6 +26,7 @@ import pycolmap
 from hico_plugin.data import images as image_io
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
+from hico_plugin.data.seed_points import seed_points
 from hico_plugin.errors import HicoError
 
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "camera_model",
@@ -40,8 +41,12 @@ class TransformsFormat(DataFormat):
 
     file: str = "transforms.json"
     """Name of the JSON file inside the dataset directory."""
+    triangulate: bool = True
+    """Without ply_file_path: triangulate seed points from the known poses (SIFT + matching on the CPU,
+    cached in the user cache directory) instead of drawing random ones."""
     random_points: int = 20_000
-    """Seed points drawn at random (with a warning) when the file names no ply_file_path."""
+    """Seed points drawn at random (with a warning) when there is no ply_file_path and triangulation
+    is off or finds too few points."""
 
     def detect(self, data_dir: Path) -> bool:
         return (data_dir / self.file).is_file()
@@ -109,7 +114,11 @@ class TransformsFormat(DataFormat):
             depths.append(resolve_inside(data_dir, str(frame["depth_file_path"]), f"{where}.depth_file_path")
                           if frame.get("depth_file_path") else None)
         viewmats = np.stack(viewmats)
-        points, colors = self._points(meta, data_dir, path, to_original, viewmats, notes)
+        if meta.get("ply_file_path"):
+            points, colors = _ply_points(meta, data_dir, path, to_original)
+        else:
+            points, colors = seed_points(data_dir, names, camera_ids, cameras, viewmats, path.name, self.triangulate,
+                                         self.random_points, notes)
         return SceneRecord(
             names=names, image_paths=paths, camera_ids=camera_ids, cameras=cameras, viewmats=viewmats,
             points=points, point_colors=colors, mask_paths=masks,
@@ -117,33 +126,23 @@ class TransformsFormat(DataFormat):
             has_ground_truth=(data_dir / "ground_truth").is_dir(), notes=notes,
         )
 
-    def _points(self, meta: dict, data_dir: Path, path: Path, to_original: np.ndarray, viewmats: np.ndarray,
-                notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        if meta.get("ply_file_path"):
-            ply = resolve_inside(data_dir, str(meta["ply_file_path"]), f"{path.name}: ply_file_path")
-            if not ply.is_file():
-                raise HicoError(f"{path.name}: ply_file_path {meta['ply_file_path']!r} not found at {ply}")
-            cloud = pycolmap.Reconstruction()
-            try:
-                cloud.import_PLY(str(ply))
-            except Exception as err:  # noqa: BLE001 -- pycolmap raises bare RuntimeError on bad files
-                raise HicoError(f"{ply}: not a readable PLY point cloud ({str(err).strip()[-200:]})") from None
-            if cloud.num_points3D() == 0:
-                raise HicoError(f"{ply}: the point cloud is empty (expected seed points)")
-            ordered = [cloud.points3D[i] for i in sorted(cloud.points3D)]
-            xyz = np.array([p.xyz for p in ordered], dtype=np.float64)
-            xyz = xyz @ to_original[:3, :3].T + to_original[:3, 3]
-            return xyz, np.array([p.color for p in ordered], dtype=np.uint8)
-        # Random seed points inside the box around the cameras (3DGS's fallback); training then has to
-        # grow the geometry from scratch, which costs quality on real captures.
-        centres = np.stack([-vm[:3, :3].T @ vm[:3, 3] for vm in viewmats])
-        low, high = centres.min(axis=0), centres.max(axis=0)
-        middle, half = (low + high) / 2, np.maximum((high - low) / 2, 1e-3)
-        rng = np.random.default_rng(0)
-        points = middle + rng.uniform(-1.0, 1.0, size=(self.random_points, 3)) * half
-        notes.append(f"warning: {path.name} names no ply_file_path; seeding with {self.random_points} random points "
-                     "(run hico-process or add a sparse point cloud for better results)")
-        return points, np.full((self.random_points, 3), 128, dtype=np.uint8)
+
+def _ply_points(meta: dict, data_dir: Path, path: Path, to_original: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``ply_file_path`` cloud in the original world frame: [P, 3] float64, [P, 3] uint8."""
+    ply = resolve_inside(data_dir, str(meta["ply_file_path"]), f"{path.name}: ply_file_path")
+    if not ply.is_file():
+        raise HicoError(f"{path.name}: ply_file_path {meta['ply_file_path']!r} not found at {ply}")
+    cloud = pycolmap.Reconstruction()
+    try:
+        cloud.import_PLY(str(ply))
+    except Exception as err:  # noqa: BLE001 -- pycolmap raises bare RuntimeError on bad files
+        raise HicoError(f"{ply}: not a readable PLY point cloud ({str(err).strip()[-200:]})") from None
+    if cloud.num_points3D() == 0:
+        raise HicoError(f"{ply}: the point cloud is empty (expected seed points)")
+    ordered = [cloud.points3D[i] for i in sorted(cloud.points3D)]
+    xyz = np.array([p.xyz for p in ordered], dtype=np.float64)
+    xyz = xyz @ to_original[:3, :3].T + to_original[:3, 3]
+    return xyz, np.array([p.color for p in ordered], dtype=np.uint8)
 
 
 def _matrix(value: Any, shape: tuple[int, int], where: str) -> np.ndarray:

@@ -37,8 +37,9 @@ class ExportGaussians(Exporter):
         _, gaussians = model.render(dataset.cameras[self.camera_index], ("alpha",))
         camera = dataset.cameras[self.camera_index].to(gaussians.means.device)
         normals = facing_normals(gaussians.means, gaussians.quats, gaussians.scales, camera.center)
-        means, scales = gaussians_to_colmap(gaussians.means, gaussians.scales, dataset.transform)
-        rows, dropped = inria_vertices(means, gaussians.quats, scales, gaussians.opacities, gaussians.colors, normals)
+        normals = dataset.transform.directions_to_colmap(normals)
+        means, quats, scales = gaussians_to_colmap(gaussians.means, gaussians.quats, gaussians.scales, dataset.transform)
+        rows, dropped = inria_vertices(means, quats, scales, gaussians.opacities, gaussians.colors, normals)
         path = output_path(self.output, run, f"gaussians_view{self.camera_index}.ply")
         write_ply(path, rows)
         print(f"gaussians: wrote {dropped.kept} of {len(gaussians)} decoded for view {self.camera_index} to {path}; "

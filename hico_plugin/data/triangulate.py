@@ -1,0 +1,136 @@
+"""Seed points triangulated from known poses (COLMAP's point triangulator, through pycolmap 4).
+
+For posed image sets without a point cloud (transforms.json without ``ply_file_path``, Mega-NeRF):
+SIFT on the CPU, matching (every pair for small sets, the nearest cameras for large ones), then
+``pycolmap.triangulate_points`` on a reconstruction that holds the given cameras and poses, which
+stay fixed. The result is cached under the user cache directory, keyed by everything it depends on
+(image files, cameras, poses, options), never written into the dataset folder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+MIN_POINTS = 100
+"""Fewer triangulated points than this and the caller falls back to random points."""
+EXHAUSTIVE_UP_TO = 150
+"""Images up to which every pair is matched; above, each image is matched to its nearest cameras."""
+SPATIAL_NEIGHBOURS = 30
+"""Nearest cameras (by centre) each image is matched with in large sets."""
+MAX_FEATURES = 4096
+MAX_IMAGE_SIZE = 1600
+CACHE_VERSION = 1  # bump when the output for the same inputs changes
+
+
+def cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/hico_plugin/triangulation`` (``~/.cache/...``)."""
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "hico_plugin" / "triangulation"
+
+
+def triangulate_known_poses(data_dir: Path, names: list[str], camera_ids: list[int],
+                            cameras: dict[int, pycolmap.Camera], viewmats: np.ndarray,
+                            num_threads: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """Points seen by the images ``data_dir/names[i]`` from the known cameras.
+
+    names: [N] image paths relative to ``data_dir``; camera_ids: [N] keys of ``cameras`` (any COLMAP
+    model, distortion included); viewmats: [N, 4, 4] world->camera, OpenCV axes.
+    Returns points [P, 3] float64 in the world frame of ``viewmats`` and colours [P, 3] uint8 (P may
+    be 0 when nothing matches)."""
+    key = _cache_key(data_dir, names, camera_ids, cameras, viewmats)
+    cached = cache_dir() / f"{key}.npz"
+    if cached.is_file():
+        try:
+            with np.load(cached, allow_pickle=False) as data:
+                return data["points"], data["colors"]
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged cache entry is recomputed
+    print(f"triangulating seed points from the {len(names)} known poses (SIFT + matching on the CPU; "
+          f"cached in {cache_dir()})", file=sys.stderr)
+    cache_dir().mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=cache_dir()))
+    try:
+        points, colors = _triangulate(data_dir, names, camera_ids, cameras, viewmats, work, num_threads)
+        partial = work / "points.npz"
+        np.savez(partial, points=points, colors=colors)
+        partial.replace(cached)  # atomic: a crash never leaves a half-written entry
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return points, colors
+
+
+def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, pycolmap.Camera],
+                 viewmats: np.ndarray, work: Path, num_threads: int) -> tuple[np.ndarray, np.ndarray]:
+    database = work / "database.db"
+    pycolmap.logging.minloglevel = 2  # COLMAP's INFO lines would drown the training log
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = num_threads
+    extraction.max_image_size = MAX_IMAGE_SIZE
+    extraction.sift.max_num_features = MAX_FEATURES
+    # One database camera per image; its intrinsics are replaced by the known ones below.
+    pycolmap.extract_features(database, data_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    index_of = {name: i for i, name in enumerate(names)}
+    reconstruction = pycolmap.Reconstruction()
+    with pycolmap.Database.open(database) as db:
+        images = db.read_all_images()
+        for image in images:
+            i = index_of[image.name]
+            camera = pycolmap.Camera(cameras[camera_ids[i]].todict())
+            camera.camera_id = image.camera_id
+            db.update_camera(camera)
+            reconstruction.add_camera_with_trivial_rig(camera)
+            reconstruction.add_image_with_trivial_frame(
+                pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id),
+                pycolmap.Rigid3d(viewmats[i, :3, :4]),
+            )
+            if len(names) > EXHAUSTIVE_UP_TO:
+                rotation, translation = viewmats[i, :3, :3], viewmats[i, :3, 3]
+                prior = pycolmap.PosePrior(position=-rotation.T @ translation,
+                                           coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN)
+                prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, image.camera_id),
+                                                     image.frame_id)
+                db.write_pose_prior(prior)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = num_threads
+    if len(names) > EXHAUSTIVE_UP_TO:
+        pairing = pycolmap.SpatialPairingOptions()
+        pairing.ignore_z = False
+        pairing.max_num_neighbors = SPATIAL_NEIGHBOURS
+        pairing.max_distance = float("inf")  # the scene's units are unknown; the neighbour count bounds it
+        pycolmap.match_spatial(database, matching_options=matching, pairing_options=pairing,
+                               device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = num_threads
+    options.random_seed = 0  # RANSAC in the triangulator: same inputs, same points
+    result = pycolmap.triangulate_points(reconstruction, database, data_dir, work / "model", options=options)
+    ordered = [result.points3D[i] for i in sorted(result.points3D)]
+    if not ordered:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
+    return (np.array([p.xyz for p in ordered], dtype=np.float64),
+            np.array([p.color for p in ordered], dtype=np.uint8))
+
+
+def _cache_key(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, pycolmap.Camera],
+               viewmats: np.ndarray) -> str:
+    files = []
+    for name in names:
+        stat = (data_dir / name).stat()
+        files.append([name, stat.st_size, stat.st_mtime_ns])
+    source = json.dumps([
+        CACHE_VERSION, MAX_FEATURES, MAX_IMAGE_SIZE, EXHAUSTIVE_UP_TO, SPATIAL_NEIGHBOURS,
+        str(data_dir.resolve()), files, camera_ids,
+        [[cid, c.model.name, c.width, c.height, [round(float(v), 9) for v in c.params]] for cid, c in sorted(cameras.items())],
+        np.round(viewmats, 9).tolist(),
+    ])
+    return hashlib.sha1(source.encode()).hexdigest()[:16]
