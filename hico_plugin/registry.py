@@ -22,7 +22,10 @@ from __future__ import annotations
 
 import importlib.metadata
 import warnings
-from typing import Callable, Generic, TypeVar
+import inspect
+from typing import Any, Callable, Generic, TypeVar
+
+import tyro
 
 from hico_plugin.errors import HicoError
 
@@ -89,6 +92,27 @@ class Registry(Generic[T]):
         """(name, implementation) in registration order, installed plug-ins' included."""
         load_plugins()
         return list(self._entries.items())
+
+    def defaults(self) -> dict[str, Any]:
+        """Name -> default instance of every registered config class, installed plug-ins' included; one
+        whose options lack defaults (a plug-in's mistake) is left out with one warning naming it."""
+        instances = {}
+        for name, config in self.items():
+            try:
+                instances[name] = config()
+            except TypeError as err:
+                warnings.warn(f"{self.kind} '{name}' ({config.__module__}) left out: every option needs a default "
+                              f"({err})", stacklevel=2)
+        return instances
+
+    def subcommands(self) -> Any:
+        """A tyro subcommand union of the registered config classes, each named by its registered name and
+        described by its docstring. Built when a command line is parsed, never at import: that is when
+        plug-ins have loaded (a plug-in's module may import the module that asks)."""
+        defaults = self.defaults()
+        return tyro.extras.subcommand_type_from_defaults(
+            defaults, descriptions={name: inspect.getdoc(type(config)) or "" for name, config in defaults.items()},
+            prefix_names=False)
 
     def names(self) -> list[str]:
         load_plugins()

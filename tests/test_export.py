@@ -245,7 +245,7 @@ def test_png_and_mp4_writers(tmp_path):
 def test_hico_export_offers_every_registered_exporter_and_skips_one_without_defaults(monkeypatch):
     from dataclasses import dataclass
 
-    from hico_plugin.cli.export import exporter_defaults, parse
+    from hico_plugin.cli.export import parse
     from hico_plugin.export.exporters import EXPORTERS, Exporter
 
     @dataclass
@@ -256,7 +256,7 @@ def test_hico_export_offers_every_registered_exporter_and_skips_one_without_defa
 
     monkeypatch.setitem(EXPORTERS._entries, "needs-a-path", NeedsAPath)  # registered for this test only
     with pytest.warns(UserWarning, match="exporter 'needs-a-path' .* left out: every option needs a default"):
-        defaults = exporter_defaults()
+        defaults = EXPORTERS.defaults()
         args = parse(["--load-config", "RUN/config.yml", "anchors", "--output", "a.ply"])
     assert {"gaussians", "anchors", "mesh"} <= set(defaults) and "needs-a-path" not in defaults
     assert type(args.target).__name__ == "ExportAnchors" and str(args.target.output) == "a.ply"

@@ -11,9 +11,7 @@ after the exporter name. Built-in outputs are PLY files in COLMAP's frame.
 
 from __future__ import annotations
 
-import inspect
 import sys
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, Sequence, TypeVar
@@ -42,24 +40,8 @@ class ExportArgs(Generic[TargetT]):
     """Device to decode on (default: the run's)."""
 
 
-def exporter_defaults() -> dict[str, Any]:
-    """Name -> default instance of every registered exporter; one whose options lack defaults (a
-    plug-in's mistake) is left out with one warning naming it."""
-    defaults = {}
-    for name, exporter in EXPORTERS.items():
-        try:
-            defaults[name] = exporter()
-        except TypeError as err:
-            warnings.warn(f"exporter '{name}' ({exporter.__module__}) left out: every option needs a default ({err})",
-                          stacklevel=2)
-    return defaults
-
-
 def parse(args: Sequence[str]) -> ExportArgs[Any]:
-    defaults = exporter_defaults()
-    targets = tyro.extras.subcommand_type_from_defaults(
-        defaults, descriptions={name: inspect.getdoc(type(exporter)) or "" for name, exporter in defaults.items()},
-        prefix_names=False)
+    targets = EXPORTERS.subcommands()
     # Cascade: run options may follow the exporter name; no "target:" prefix on the exporter names.
     return tyro.cli(ExportArgs[targets], args=list(args), prog="hico-export",
                     config=(tyro.conf.CascadeSubcommandArgs, tyro.conf.OmitSubcommandPrefixes))

@@ -8,7 +8,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 import torch
@@ -19,27 +19,23 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
 from hico_plugin.data.dataset import CameraSource, Dataset
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
-from hico_plugin.data.formats.colmap import ColmapFormat
-from hico_plugin.data.formats.meganerf import MegaNerfFormat
-from hico_plugin.data.formats.transforms import TransformsFormat
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.splits import extrapolation_split, sparse_views
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
 
-# The built-in formats as tyro subcommands (``hico-train ... --data DIR transforms --file x.json``);
-# None = detect. Listed here rather than read from DATA_FORMATS: reading a registry at import loads
-# plug-ins, which may import this module. A plug-in's format is found by detection.
-FormatChoice = Optional[tyro.extras.subcommand_type_from_defaults(
-    {"colmap": ColmapFormat(), "meganerf": MegaNerfFormat(), "transforms": TransformsFormat()}, prefix_names=False)]
+# A dataset format named on the command line (``hico-train ... --data DIR transforms --file x.json``), one
+# subcommand per registered format, installed plug-ins' included; None = detect. tyro asks for the
+# subcommands when it parses, not at import: reading the registry loads plug-ins, which may import this module.
+FormatChoice = Annotated[Optional[DataFormat], tyro.conf.arg(constructor_factory=lambda: Optional[
+    DATA_FORMATS.subcommands()])]
 
 
 def detect_format(data_dir: Path) -> DataFormat:
     """The first registered format, by name, whose ``detect`` accepts DIR (colmap before transforms:
     nerfstudio's COLMAP output holds both, and sparse/0 carries the points)."""
-    for name in DATA_FORMATS.names():
-        candidate = DATA_FORMATS.get(name)()
+    for _, candidate in sorted(DATA_FORMATS.defaults().items()):
         if candidate.detect(data_dir):
             return candidate
     raise HicoError(

@@ -17,7 +17,7 @@ class DataSourceConfig(DataParserConfig):
     the built-in ``--scene`` (generated and cached on first use)."""
 
     data: Optional[Path] = None
-    """Dataset directory (format detected, or named with format:NAME); omit it to train on the built-in --scene."""
+    """Dataset directory (format detected, or named after it: --data DIR transforms); omit it to train on the built-in --scene."""
     scene: str = "city-block"
     """Built-in scene used when --data is not given (city-block, pagoda, tiny)."""
 

@@ -14,8 +14,9 @@ defaults, unknown fields are an error naming the file and the field.
 
 A config.yml is untrusted: a tag resolves only to a config class already loaded -- a subclass of
 ``InstantiateConfig`` (every component, preset and plug-in config) or a dataclass / enum one of them
-holds -- and never imports the module it names (an import would run that module's code). Whoever
-loads a run imports the components first (the CLIs import ``hico_plugin.presets``).
+holds, or a subclass of that dataclass (a plug-in's dataset format) -- and never imports the module it
+names (an import would run that module's code). Whoever loads a run imports the components first (the
+CLIs import ``hico_plugin.presets``).
 """
 
 from __future__ import annotations
@@ -77,7 +78,8 @@ def _classes_in(annotation: Any) -> list[type]:
 
 def allowed_config_classes() -> dict[str, type]:
     """Import path -> class of every config class a config.yml may name: the loaded subclasses of
-    ``InstantiateConfig`` and the dataclasses / enums their fields hold, transitively."""
+    ``InstantiateConfig`` and the dataclasses / enums their fields hold and those dataclasses' loaded
+    subclasses, transitively."""
     from hico_plugin.config import InstantiateConfig
     from hico_plugin.registry import load_plugins
 
@@ -89,9 +91,9 @@ def allowed_config_classes() -> dict[str, type]:
         if _qualified(cls) in allowed:
             continue
         allowed[_qualified(cls)] = cls
-        stack += cls.__subclasses__() if issubclass(cls, InstantiateConfig) else []
         if not dataclasses.is_dataclass(cls):
             continue
+        stack += cls.__subclasses__()  # a field of a config class may hold any subclass of it (a plug-in's format)
         try:
             hints = list(typing.get_type_hints(cls).values())
         except Exception:  # noqa: BLE001 - an annotation naming an unloaded type: use the defaults

@@ -3,7 +3,8 @@ conventions, OpenCV axes), and registers itself in ``DATA_FORMATS``.
 
 A format is a dataclass config with ``detect(data_dir) -> bool`` and ``read(data_dir) -> SceneRecord``;
 ``--data DIR`` picks the first registered format whose ``detect`` accepts DIR unless a format is named
-as a subcommand (``format:transforms``). An outside package adds a layout by registering a config::
+as a subcommand (``--data DIR transforms``). An outside package adds a layout, then a subcommand too,
+by registering a config (``tests/plugin_example/``)::
 
     @DATA_FORMATS.register("my-layout")
     @dataclass
@@ -12,6 +13,8 @@ as a subcommand (``format:transforms``). An outside package adds a layout by reg
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,3 +56,8 @@ class DataFormat:
 
 
 DATA_FORMATS: Registry[type[DataFormat]] = Registry("dataset format")
+
+
+# Every module of this package registers its format on import, so a new built-in format is one file here.
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
