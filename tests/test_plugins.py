@@ -132,3 +132,54 @@ def test_a_broken_plugin_is_one_warning_not_a_crash(tmp_path):
     warnings = [line for line in result.stderr.splitlines() if "Warning" in line]
     assert len(warnings) == 1, result.stderr
     assert "'broken'" in warnings[0] and "broken-plugin" in warnings[0] and "this plug-in is broken" in warnings[0]
+
+
+def _nerf_synthetic(root: Path) -> tuple[Path, int]:
+    """The tiny scene in the NeRF-synthetic layout (every 4th view in transforms_test.json) and its
+    number of test views."""
+    import numpy as np
+    import pycolmap
+
+    from hico_plugin.scenes.generate import generate_scene
+
+    scene = generate_scene("tiny", root / "scene")
+    model = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    shutil.copytree(scene / "images", root / "blender" / "images")
+    camera = next(iter(model.cameras.values()))
+    fx, fy, cx, cy = camera.params[:4]
+    splits: dict[str, list] = {"train": [], "test": []}
+    for i, image in enumerate(sorted(model.images.values(), key=lambda im: im.name)):
+        c2w = np.eye(4)
+        c2w[:3, :] = image.cam_from_world().inverse().matrix()
+        c2w[:, 1:3] *= -1  # OpenCV -> OpenGL camera axes, as Blender's files store them
+        splits["test" if i % 4 == 0 else "train"].append(
+            {"file_path": f"images/{image.name}", "transform_matrix": c2w.tolist()})
+    for split, frames in splits.items():
+        meta = {"fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": camera.width, "h": camera.height, "frames": frames}
+        (root / "blender" / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root / "blender", len(splits["test"])
+
+
+def test_a_plugin_dataset_format_is_named_on_the_command_line(site, tmp_path):
+    data, num_test = _nerf_synthetic(tmp_path)
+    for command in (["hico-train", "hico-gs-lite"], ["hico-inspect"], ["hico-bench", "quick"]):
+        listed = _run([_cli(command[0]), *command[1:], "--help"], site, tmp_path)
+        assert listed.returncode == 0, listed.stderr
+        assert "nerf-synthetic" in listed.stdout and "transforms" in listed.stdout, command
+
+    inspected = _run([_cli("hico-inspect"), str(data), "nerf-synthetic", "--random-points", "500",
+                      "--no-effects"], site, tmp_path)
+    assert inspected.returncode == 0, inspected.stderr
+    assert f"{num_test} test" in inspected.stdout  # the layout's own test file, not --test-every
+    without = _run([_cli("hico-inspect"), str(data), "nerf-synthetic"], tmp_path / "empty", tmp_path)
+    assert without.returncode != 0 and "nerf-synthetic" in without.stderr  # the name exists only with the plug-in
+
+    out = tmp_path / "run"
+    trained = _train_tiny(site, tmp_path, out, "--data", str(data), "nerf-synthetic", "--random-points", "500", steps=2)
+    assert trained.returncode == 0, trained.stderr
+    assert "hico_example_plugin.nerf_synthetic.NerfSyntheticFormat" in (out / "config.yml").read_text()
+    assert json.loads((out / "eval.json").read_text())["results"]["step"] == 2
+    reloaded = _run([sys.executable, "-c", "from hico_plugin.engine import load_run; "
+                     f"r = load_run({str(out / 'config.yml')!r}); print(len(r.dataset.test_indices))"], site, tmp_path)
+    assert reloaded.returncode == 0, reloaded.stderr
+    assert int(reloaded.stdout.split()[-1]) == num_test

@@ -31,6 +31,7 @@ import torch
 
 from hico_plugin.bench.timing import StageTimer
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.data.parser import FormatChoice
 from hico_plugin.engine import TrainerCallback, evaluate
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
@@ -52,7 +53,9 @@ class BenchConfig(InstantiateConfig):
     scenes: tuple[str, ...] = ("city-block", "pagoda")
     """Built-in scenes (ignored when --data is given)."""
     data: Path | None = None
-    """A COLMAP dataset directory to benchmark instead of the built-in scenes."""
+    """A dataset directory (any registered format) to benchmark instead of the built-in scenes."""
+    format: FormatChoice = None
+    """Layout of --data; default: detected from the directory's contents."""
     effects: tuple[str, ...] = ("auto",)
     """The effects axis: each value is one --model.effects setting (e.g. "auto,sky=off"); every
     preset x scene runs once per value. A value other than "auto" names its rows "PRESET [VALUE]"."""
@@ -90,7 +93,7 @@ class BenchConfig(InstantiateConfig):
         if min(config.budgets) < 1:
             raise HicoError(f"--budgets: expected positive step counts, got {list(config.budgets)}")
         if config.data is not None and not Path(config.data).is_dir():
-            raise HicoError(f"--data {config.data}: not a directory (expected a COLMAP dataset)")
+            raise HicoError(f"--data {config.data}: not a directory (expected a dataset folder)")
         if config.max_eval_views < 1 or config.downscale < 1:
             raise HicoError("--max-eval-views / --downscale: expected >= 1")
         if not config.seeds:
@@ -120,7 +123,7 @@ def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int, seed
     """The training config of one run of the matrix (output_dir not yet set)."""
     config = copy.deepcopy(all_presets()[preset][1])
     data = dataclasses.replace(config.data, downscale=bench.downscale,
-                               data=Path(bench.data) if bench.data is not None else None,
+                               data=Path(bench.data) if bench.data is not None else None, format=bench.format,
                                scene=config.data.scene if bench.data is not None else scene)
     model = dataclasses.replace(config.model, eval_lpips=bench.lpips, effects=effects)
     return dataclasses.replace(config, data=data, model=model, max_steps=max_steps, seed=seed,

@@ -4,7 +4,7 @@ Importing this module (which hico_plugin does through the ``hico_plugin.componen
 ``pyproject.toml``) registers a context aggregator, ``gated-mean``, and a preset, ``example-gated``,
 so ``hico-train example-gated`` and ``--model.field.context.kind gated-mean`` work with no edit of
 hico_plugin. Its other modules, each named by an entry point of its own, add a loss
-(``opacity_loss``) and an exporter (``cameras_exporter``).
+(``opacity_loss``), an exporter (``cameras_exporter``) and a dataset format (``nerf_synthetic``).
 """
 
 from __future__ import annotations
