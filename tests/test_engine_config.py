@@ -82,3 +82,18 @@ def test_a_run_from_before_losses_became_a_mapping_still_loads(tmp_path):
                     "  dngc: !dataclass:hico_plugin.losses.dngc.DNGCLossConfig\n    enabled: false\n")
     assert load_config(path).losses == {"rgb": PhotometricLossConfig(ssim_lambda=0.3),
                                          "dngc": DNGCLossConfig(enabled=False)}
+
+
+def test_a_run_from_before_orientation_and_kept_ancestors_loads_as_it_was_trained(tmp_path):
+    import hico_plugin.presets  # noqa: F401  (the config classes a run's config.yml names)
+    from hico_plugin.presets import all_presets
+
+    path = tmp_path / "config.yml"
+    path.write_text("!dataclass:hico_plugin.data.parser.DataParserConfig\ndownscale: 2\n")
+    assert load_config(path).orient is False  # its scene frame was not rotated
+    path.write_text("!dataclass:hico_plugin.field.densify.DensifyConfig\ninterval: 100\n")
+    assert load_config(path).keep_ancestors is False
+    # a config written today keeps today's values
+    save_config(all_presets()["hico-gs-lite"][1], path)
+    loaded = load_config(path)
+    assert loaded.data.orient is True and loaded.model.field.densify.keep_ancestors is True

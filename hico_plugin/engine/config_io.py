@@ -37,6 +37,13 @@ _DATACLASS_TAG = "!dataclass:"
 _ENUM_TAG = "!enum:"
 # Config classes that became plain mappings; config.yml files of runs trained before still load.
 _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses: {name: LossConfig} since issue 16
+# Fields added after runs were trained, whose default changes what such a run means: a file without the
+# field gets the value that reproduces the run (its scene frame was not rotated; its anchors were not
+# kept nested), not today's default.
+_ADDED_FIELDS = {
+    "hico_plugin.data.parser.DataParserConfig": {"orient": False},
+    "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False},
+}
 
 
 class _ConfigDumper(yaml.SafeDumper):
@@ -125,6 +132,7 @@ def _construct_dataclass(loader: _ConfigLoader, suffix: str, node: yaml.Node) ->
         raise HicoError(f"{loader.name}: '{suffix}' is not a config dataclass")
     values = loader.construct_mapping(node, deep=True) if isinstance(node, yaml.MappingNode) else {}
     init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
+    values = {**_ADDED_FIELDS.get(suffix, {}), **values}
     unknown = sorted(set(values) - init_fields)
     if unknown:
         raise HicoError(f"{loader.name}: unknown field(s) {', '.join(unknown)} for {cls.__qualname__}")
