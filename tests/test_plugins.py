@@ -167,8 +167,9 @@ def test_a_plugin_dataset_format_is_named_on_the_command_line(site, tmp_path):
         assert listed.returncode == 0, listed.stderr
         assert "nerf-synthetic" in listed.stdout and "transforms" in listed.stdout, command
 
-    inspected = _run([_cli("hico-inspect"), str(data), "nerf-synthetic", "--random-points", "500",
-                      "--no-effects"], site, tmp_path)
+    # the command's own options come before the format subcommand, the format's after it
+    inspected = _run([_cli("hico-inspect"), "--no-effects", str(data), "nerf-synthetic", "--random-points", "500"],
+                     site, tmp_path)
     assert inspected.returncode == 0, inspected.stderr
     assert f"{num_test} test" in inspected.stdout  # the layout's own test file, not --test-every
     without = _run([_cli("hico-inspect"), str(data), "nerf-synthetic"], tmp_path / "empty", tmp_path)

@@ -28,7 +28,7 @@ from hico_plugin.errors import HicoError
 # A dataset format named on the command line (``hico-train ... --data DIR transforms --file x.json``), one
 # subcommand per registered format, installed plug-ins' included; None = detect. tyro asks for the
 # subcommands when it parses, not at import: reading the registry loads plug-ins, which may import this module.
-FormatChoice = Annotated[Optional[DataFormat], tyro.conf.arg(constructor_factory=lambda: Optional[
+FormatChoice = Annotated[Optional[DataFormat], tyro.conf.OmitArgPrefixes, tyro.conf.arg(constructor_factory=lambda: Optional[
     DATA_FORMATS.subcommands()])]
 
 
