@@ -184,14 +184,15 @@ def close_ancestors(positions: Tensor, levels: Tensor, features: Tensor, keep: T
         # revive pruned anchors sitting in a candidate parent cell of an orphan
         dead = (~keep).nonzero().squeeze(1)
         ids, num_cells = dense_cell_ids(torch.cat([parent_keys, dead_keys[dead]]))
+        edge_cells, dead_cells = ids[: parent_keys.shape[0]], ids[parent_keys.shape[0]:]
         wanted = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
-        wanted[ids[: parent_keys.shape[0]]] = True
-        revive = dead[wanted[ids[parent_keys.shape[0]:]]]
-        keep[revive] = True
-        available = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
-        available[ids[parent_keys.shape[0]:][wanted[ids[parent_keys.shape[0]:]]]] = True
+        wanted[edge_cells] = True
+        revived = wanted[dead_cells]
+        keep[dead[revived]] = True
+        refilled = torch.zeros_like(wanted)
+        refilled[dead_cells[revived]] = True
         served = torch.zeros_like(orphan)
-        served[anchor[available[ids[: parent_keys.shape[0]]]]] = True
+        served[anchor[refilled[edge_cells]]] = True
         # the rest: a new anchor at each remaining orphan's highest-weight candidate (first on ties)
         pending = orphan & ~served
         if pending.any():
