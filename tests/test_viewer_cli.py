@@ -33,7 +33,7 @@ def test_demo_serves_and_stops_on_ctrl_c():
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     process = subprocess.Popen(
-        [sys.executable, "-m", "hico_plugin.cli.view", "--demo", "--viewer.port", str(port), "--viewer.thumbnail-size", "0"],
+        [sys.executable, "-X", "faulthandler", "-m", "hico_plugin.cli.view", "--demo", "--viewer.port", str(port), "--viewer.thumbnail-size", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     lines: list[str] = []
@@ -54,7 +54,13 @@ def test_demo_serves_and_stops_on_ctrl_c():
         with socket.create_connection(("127.0.0.1", port), timeout=5):
             pass
         process.send_signal(signal.SIGINT)
-        returncode = process.wait(timeout=60)
+        try:
+            returncode = process.wait(timeout=60)
+        except subprocess.TimeoutExpired:  # SIGABRT makes faulthandler print every thread's stack
+            process.send_signal(signal.SIGABRT)
+            process.wait(timeout=30)
+            time.sleep(0.2)
+            raise AssertionError("no exit 60 s after SIGINT:\n" + "".join(lines)) from None
         time.sleep(0.2)  # let the reader collect the last lines
         assert returncode == 0, "".join(lines)
     finally:
