@@ -28,7 +28,8 @@ def test_missing_or_bad_config_is_one_clear_error(tmp_path, monkeypatch, capsys)
     assert capsys.readouterr().err.strip().splitlines() == [f"error: --load-config: {missing} is not a file (expected RUN/config.yml)"]
 
 
-def test_demo_serves_and_stops_on_ctrl_c():
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_demo_serves_and_stops_on_signal(stop_signal):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
@@ -53,14 +54,14 @@ def test_demo_serves_and_stops_on_ctrl_c():
         assert f"ssh -L {port}:localhost:{port}" in output
         with socket.create_connection(("127.0.0.1", port), timeout=5):
             pass
-        process.send_signal(signal.SIGINT)
+        process.send_signal(stop_signal)
         try:
             returncode = process.wait(timeout=60)
         except subprocess.TimeoutExpired:  # SIGABRT makes faulthandler print every thread's stack
             process.send_signal(signal.SIGABRT)
             process.wait(timeout=30)
             time.sleep(0.2)
-            raise AssertionError("no exit 60 s after SIGINT:\n" + "".join(lines)) from None
+            raise AssertionError("no exit 60 s after the stop signal:\n" + "".join(lines)) from None
         time.sleep(0.2)  # let the reader collect the last lines
         assert returncode == 0, "".join(lines)
     finally:

@@ -7,14 +7,16 @@
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import tyro
 
 import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
+from hico_plugin.engine.stopping import EXIT_INTERRUPTED, stop_on_signals
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer import RunViewerState, ViewableModel, ViewerConfig, model_render_fn
 
@@ -72,7 +74,32 @@ def main(args: ViewArgs) -> None:
     model, dataset, stats = load_viewable_run(args)
     state = RunViewerState(model, dataset, stats=stats)
     viewer = args.viewer.setup(render_fn=model_render_fn(model), state=state)
-    viewer.serve_forever()
+    serve_until_signal(viewer.stop)
+
+
+def serve_until_signal(stop: Callable[[], None]) -> None:
+    """Block until Ctrl-C, SIGTERM or SIGHUP, then call ``stop()``; a second signal during that
+    stop ends the process at once (exit status 130).
+
+    The signal handler only sets a flag that a sleeping loop polls: a KeyboardInterrupt raised inside
+    a lock's ``with`` block (as in ``Event.wait``) can leave the lock held, and stopping the viewer
+    needs that lock again."""
+    requested = [False]
+
+    def request_stop() -> bool:
+        already, requested[0] = requested[0], True
+        return already
+
+    try:
+        with stop_on_signals(request_stop, announce=False):
+            try:
+                print("viewer: Ctrl-C to stop", flush=True)
+                while not requested[0]:
+                    time.sleep(0.2)
+            finally:
+                stop()
+    except KeyboardInterrupt:
+        raise SystemExit(EXIT_INTERRUPTED) from None
 
 
 def entrypoint() -> None:

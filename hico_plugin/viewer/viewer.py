@@ -175,17 +175,6 @@ class Viewer:
         self.worker.stop()
         self.server.stop()
 
-    def serve_forever(self) -> None:
-        """Block until Ctrl-C (for ``hico-view``), then stop."""
-        try:  # the hint is printed inside: a Ctrl-C right after reading it must still stop cleanly
-            print("viewer: Ctrl-C to stop", flush=True)
-            while not self.worker.stopping.wait(1.0):
-                pass
-        except KeyboardInterrupt:
-            pass
-        finally:
-            self.stop()
-
 
 def attach_viewer(trainer: Any, config: ViewerConfig) -> Viewer:
     """Start a viewer on ``trainer``'s model and dataset and join the run as a callback (rank 0).
