@@ -21,8 +21,8 @@ imported the first time any registry is read (``load_plugins``); see ``tests/plu
 from __future__ import annotations
 
 import importlib.metadata
-import warnings
 import inspect
+import warnings
 from typing import Any, Callable, Generic, TypeVar
 
 import tyro
