@@ -8,7 +8,8 @@ import torch
 
 from hico_plugin.errors import HicoError
 from hico_plugin.field import (
-    CONTEXT_AGGREGATORS, ContextConfig, OctreeGrid, context_lookup, context_triplet, dense_cell_ids)
+    CONTEXT_AGGREGATORS, ContextConfig, ContextIndex, OctreeGrid, context_graph, context_lookup, context_triplet,
+    dense_cell_ids)
 from hico_plugin.field.octree import voxelize
 
 GRID = OctreeGrid(origin=(0.5, -1.0, 2.0), cube_size=16.0, voxel_size=2.0, num_levels=4, fork=2,
@@ -26,6 +27,16 @@ def random_visible_anchors(seed: int, num: int = 300, dim: int = 8, span: int = 
     positions = positions + drift * (GRID.voxel_size / 2.0 ** levels.float())[:, None]
     features = torch.randn(num, dim, generator=gen)
     return features, levels, positions
+
+
+def lookup(features, levels, positions, rule="trilinear", reduce="mean"):
+    """context_lookup with every anchor counted as visible."""
+    return context_lookup(features, context_graph(levels, positions, GRID, rule), reduce)
+
+
+def enhance(module, features, levels, positions):
+    """The aggregator on anchors all counted as visible, through its own (cached) graph."""
+    return module(features, module.graph(levels, positions, torch.arange(levels.shape[0]), GRID))
 
 
 def candidate_parents(index, level, rule, position):
@@ -90,7 +101,7 @@ def slow_lookup(features, levels, positions, rule, reduce):
 def test_lookup_matches_slow_loop(rule, reduce):
     for seed in range(3):
         features, levels, positions = random_visible_anchors(seed, num=100 if seed else 200)
-        fast = context_lookup(features, levels, positions, GRID, rule, reduce)
+        fast = lookup(features, levels, positions, rule, reduce)
         slow = slow_lookup(features, levels, positions, rule, reduce)
         for name, a, b in zip(("parent", "self", "child", "parent_found", "child_found"),
                               (fast.parent, fast.own, fast.child, fast.parent_found, fast.child_found), slow):
@@ -104,8 +115,8 @@ def test_paper_rule_ties_and_trilinear_weights():
     index = torch.tensor([[3, 0, 0], [1, 0, 0], [2, 0, 0]])
     positions = GRID.grid_position(index, levels)
     features = torch.tensor([[0.0], [10.0], [20.0]])
-    assert context_lookup(features, levels, positions, GRID, "paper").parent[0].item() == 20.0
-    trilinear = context_lookup(features, levels, positions, GRID, "trilinear")
+    assert lookup(features, levels, positions, "paper").parent[0].item() == 20.0
+    trilinear = lookup(features, levels, positions, "trilinear")
     assert trilinear.parent[0].item() == 15.0 and trilinear.parent_pooled[0].item() == 2
     # Both level-0 anchors see the level-1 anchor as a child (weight 1/2 each, one anchor pooled).
     assert trilinear.child[1:, 0].tolist() == [0.0, 0.0] and trilinear.child_found[1:].all()
@@ -118,10 +129,10 @@ def test_absent_context_is_the_learned_missing_vector_not_self():
     positions = GRID.grid_position(torch.tensor([[7, 7, 7], [1, 1, 1]]), levels)
     features = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
     missing = torch.tensor([[-1.0, -1.0], [-2.0, -2.0]])
-    triplet = context_triplet(features, levels, positions, GRID, "trilinear", missing=missing)
+    triplet = context_triplet(features, context_graph(levels, positions, GRID, "trilinear"), missing=missing)
     assert torch.equal(triplet[:, 0], missing[0].expand(2, -1)) and torch.equal(triplet[:, 2], missing[1].expand(2, -1))
     assert torch.equal(triplet[:, 1], features)
-    paper = context_triplet(features, levels, positions, GRID, "paper", missing=missing)
+    paper = context_triplet(features, context_graph(levels, positions, GRID, "paper"), missing=missing)
     assert torch.equal(paper[:, 0], features) and torch.equal(paper[:, 2], features)  # the paper's fallback
 
 
@@ -131,8 +142,8 @@ def test_built_levels_nest_under_trilinear_but_not_under_the_paper_rule():
     points = torch.rand(3000, 3, generator=gen) * torch.tensor([10.0, 10.0, 0.5]) + 0.3  # a noisy slab
     positions, levels = voxelize(points, GRID)
     features = torch.randn(positions.shape[0], 4, generator=gen)
-    trilinear = context_lookup(features, levels, positions, GRID, "trilinear")
-    paper = context_lookup(features, levels, positions, GRID, "paper")
+    trilinear = lookup(features, levels, positions, "trilinear")
+    paper = lookup(features, levels, positions, "paper")
     fine = levels > 0
     assert trilinear.parent_found[fine].all()
     assert paper.parent_found[fine].float().mean() < 0.9  # the gap issue 19 measured
@@ -146,17 +157,17 @@ def test_hard_cases_single_level_no_parent_empty():
     levels = torch.zeros(5, dtype=torch.long)
     positions = GRID.grid_position(torch.arange(15).view(5, 3), levels)
     features = torch.randn(5, 4)
-    found = context_lookup(features, levels, positions, GRID)
+    found = lookup(features, levels, positions)
     assert not found.parent_found.any() and not found.child_found.any()
     assert (found.parent_pooled == 0).all() and (found.child_pooled == 0).all()
-    out = module(features, levels, positions, GRID)
+    out = enhance(module, features, levels, positions)
     assert torch.isfinite(out).all() and (out - features).abs().max() < 0.05
     # Only fine anchors, none with a parent.
     levels = torch.full((5,), 3, dtype=torch.long)
-    found = context_lookup(features, levels, positions, GRID)
+    found = lookup(features, levels, positions)
     assert not found.parent_found.any()
     # Empty visible set.
-    empty = context_lookup(torch.zeros(0, 4), torch.zeros(0, dtype=torch.long), torch.zeros(0, 3), GRID)
+    empty = lookup(torch.zeros(0, 4), torch.zeros(0, dtype=torch.long), torch.zeros(0, 3))
     assert empty.parent.shape == (0, 4) and empty.parent_found.shape == (0,)
 
 
@@ -179,7 +190,7 @@ def test_near_identity_at_init_and_matches_reference(kind, rule):
     torch.manual_seed(0)
     features, levels, positions = random_visible_anchors(5, num=150, dim=32)
     module = ContextConfig(kind=kind, parent_rule=rule).setup(feature_dim=32)
-    shift = module(features, levels, positions, GRID) - features
+    shift = enhance(module, features, levels, positions) - features
     assert 0 < shift.abs().max() < 0.05  # near zero, not exactly zero (paper Sec. 3.3)
     for p in module.parameters():
         torch.nn.init.normal_(p, std=0.3)
@@ -195,13 +206,13 @@ def test_near_identity_at_init_and_matches_reference(kind, rule):
         expected = features + module.out((scores.softmax(1)[..., None] * module.value(tokens)).sum(1))
     else:
         expected = features + module.mlp(torch.cat([parent, own, child], 1))
-    torch.testing.assert_close(module(features, levels, positions, GRID), expected)
+    torch.testing.assert_close(enhance(module, features, levels, positions), expected)
 
 
 def test_none_is_identity_without_parameters():
     features, levels, positions = random_visible_anchors(1, num=50, dim=32)
     module = ContextConfig(kind="none").setup(feature_dim=32)
-    assert module(features, levels, positions, GRID) is features
+    assert enhance(module, features, levels, positions) is features
     assert sum(p.numel() for p in module.parameters()) == 0
 
 
@@ -221,7 +232,7 @@ def test_gradients_reach_the_first_layer_at_init(kind):
     features, levels, positions = random_visible_anchors(2, num=80, dim=32)
     features.requires_grad_(True)
     module = ContextConfig(kind=kind).setup(feature_dim=32)
-    module(features, levels, positions, GRID).square().sum().backward()
+    enhance(module, features, levels, positions).square().sum().backward()
     first = module.mlp[0].weight if kind != "attention" else module.value.weight
     assert torch.isfinite(features.grad).all() and first.grad.abs().sum() > 0
     assert module.missing.grad.abs().sum() > 0  # some anchor of this view lacks a context
@@ -229,7 +240,7 @@ def test_gradients_reach_the_first_layer_at_init(kind):
 
 def test_empty_view_and_bad_config():
     module = ContextConfig(kind="mean").setup(feature_dim=4)
-    empty = module(torch.zeros(0, 4), torch.zeros(0, dtype=torch.long), torch.zeros(0, 3), GRID)
+    empty = enhance(module, torch.zeros(0, 4), torch.zeros(0, dtype=torch.long), torch.zeros(0, 3))
     assert empty.shape == (0, 4)
     assert set(CONTEXT_AGGREGATORS.names()) >= {"none", "mean", "max", "attention"}
     with pytest.raises(HicoError, match="context aggregator 'sum'"):
@@ -245,13 +256,15 @@ def test_gradcheck_float64(kind, rule):
     module = ContextConfig(kind=kind, parent_rule=rule).setup(feature_dim=4).double()
     for p in module.parameters():
         torch.nn.init.normal_(p, std=0.5)
-    found = context_lookup(features, levels, positions, GRID, rule)
+    found = lookup(features, levels, positions, rule)
     assert found.parent_found.any() and found.child_found.any() and not found.parent_found.all()
     features = features.double().requires_grad_(True)
     missing = module.missing.detach().clone().requires_grad_(True)
 
+    graph = module.graph(levels, positions.double(), torch.arange(levels.shape[0]), GRID)
+
     def run(f, m):  # the learned "missing" vectors are an input too
-        return torch.func.functional_call(module, {"missing": m}, (f, levels, positions.double(), GRID))
+        return torch.func.functional_call(module, {"missing": m}, (f, graph))
 
     assert torch.autograd.gradcheck(run, (features, missing))
 
@@ -266,10 +279,10 @@ def _first_steps_shift(kind: str) -> float:
     direction = torch.randn(32, generator=torch.Generator().manual_seed(1))
     for _ in range(5):
         optimizer.zero_grad()
-        (module(features, levels, positions, GRID) @ direction).sum().backward()
+        (enhance(module, features, levels, positions) @ direction).sum().backward()
         optimizer.step()
     with torch.no_grad():
-        return float((module(features, levels, positions, GRID) - features).abs().max())
+        return float((enhance(module, features, levels, positions) - features).abs().max())
 
 
 def test_attention_moves_features_no_faster_than_mean_at_start():
@@ -277,3 +290,26 @@ def test_attention_moves_features_no_faster_than_mean_at_start():
     biases attention shifted all of them twice as fast as mean CLCA and, in training, drove every
     opacity negative within ten steps (hico-gs-attn collapsed to 12.9 dB on city-block)."""
     assert _first_steps_shift("attention") < 1.5 * _first_steps_shift("mean")
+
+
+def test_cached_index_views_equal_fresh_graphs_and_rebuild_when_an_anchor_changes_cell():
+    """ContextIndex keeps the relation over all anchors; a view must equal the graph of the visible
+    anchors alone, and an anchor drifting into another cell must be seen (not a stale relation)."""
+    features, levels, positions = random_visible_anchors(4, num=300, dim=8)
+    index = ContextIndex(GRID, "trilinear")
+    gen = torch.Generator().manual_seed(5)
+    before = lookup(features, levels, positions)
+    for trial in range(4):
+        visible = torch.sort(torch.randperm(300, generator=gen)[:200]).values
+        if trial == 3:  # move a fine anchor that has parents a whole voxel of its level: its cell changes
+            moved = int(((levels == 3) & before.parent_found).nonzero()[0])
+            positions = positions.clone()
+            positions[moved, 0] += GRID.voxel_size / 2.0**3
+            visible = torch.arange(300)
+            assert not torch.equal(lookup(features, levels, positions).parent, before.parent)  # the move matters
+        cached = context_lookup(features[visible], index.view(levels, positions, visible))
+        fresh = lookup(features[visible], levels[visible], positions[visible])
+        for name in ("parent", "own", "child", "parent_found", "child_found", "parent_pooled", "child_pooled"):
+            torch.testing.assert_close(getattr(cached, name), getattr(fresh, name), msg=f"{name}, trial {trial}")
+    with pytest.raises(ValueError, match="ascending"):
+        index.view(levels, positions, torch.tensor([3, 1]))

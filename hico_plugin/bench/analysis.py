@@ -105,8 +105,11 @@ def run_features(run_dir: Path) -> dict[str, Any]:
     with torch.no_grad():
         features = field.anchor_features.detach().float()
         levels = field.levels.detach()
-        has_context = any(True for _ in field.context.parameters()) or field.config.context.kind != "none"
-        f_hat = field.context(features, levels, field.anchors.detach(), field.grid).float() if has_context else None
+        if field.context.reads_context:  # every anchor counted as visible
+            every = torch.arange(field.num_anchors)
+            f_hat = field.context(features, field.context.graph(levels, field.anchors, every, field.grid)).float()
+        else:
+            f_hat = None
     views = dataset.test_indices.tolist() or dataset.train_indices.tolist()
     lookup = lookup_table(field, [dataset.cameras[i] for i in views])
     return {"method": config.method_name, "f": features, "f_hat": f_hat, "levels": levels,

@@ -11,8 +11,9 @@ finer one. The parent relation (``ContextConfig.parent_rule``) decides which anc
   ones, weights renormalised. A level-l anchor made from a point x (octree.voxelize) always has a
   level-(l-1) anchor made from the same x among these candidates (x is within v_l / 2 of k v_l, so it
   rounds to one of them one level up): the levels nest, and densification keeps them nested
-  (``DensifyConfig.keep_ancestors``), so a parent is absent only where LOD or frustum culling hid it. Chosen over cell-centre anchors because it
-  keeps the base method's grid, voxelisation, checkpoints and LOD exactly as they are.
+  (``DensifyConfig.keep_ancestors``), so a parent is absent only where LOD or frustum culling hid it.
+  Chosen over cell-centre anchors because it keeps the base method's grid, voxelisation, checkpoints
+  and LOD exactly as they are.
   A context that is truly absent (coarsest level, no candidate visible, no finer anchor) is a learned
   ``missing`` vector per role (parent, child), so the MLP can tell "no context" from "same context".
 - ``"paper"``: Eqs. 3-4 taken literally, parent cell ``round((p - o) / v_{l-1})`` on the (possibly
@@ -22,69 +23,30 @@ finer one. The parent relation (``ContextConfig.parent_rule``) decides which anc
 The child context uses the same relation ("child of" is the transpose of "parent of"): c_child of a
 cell is the weighted mean of the finer anchors that have it as a parent candidate, with their weights.
 
-Cost: one sort (``unique`` over the self keys and the <= 8 V candidate keys of the view) and a few
-scatters: O(V log V), no Python loop over anchors or levels.
+The relation itself (which cells, which weights) is context_graph.py's; this module pools features
+along it. Cost per view: a filter of the cached relation and three sparse products each way, O(V + E);
+the sort over cell keys is paid only when an anchor changes cell (context_graph.ContextIndex).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
+from hico_plugin.field.context_graph import PARENT_RULES, ContextGraph, ContextIndex, ParentRule
 from hico_plugin.field.octree import OctreeGrid
 from hico_plugin.registry import Registry
 
 CONTEXT_AGGREGATORS: Registry[type["ContextAggregator"]] = Registry("context aggregator")
 
-ParentRule = Literal["trilinear", "paper"]
-PARENT_RULES = ("trilinear", "paper")
 # Standard deviation of the last context layer at init: "near-zero" output (paper Sec. 3.3) that
 # still lets the first layer receive gradient from the first step.
 NEAR_ZERO_STD = 1e-3
-
-
-def dense_cell_ids(keys: Tensor) -> tuple[Tensor, int]:
-    """Dense ids of integer keys: keys [N,4] long -> (ids [N] long in [0, U), U), equal keys <-> equal
-    ids. Keys are packed into one int64 by mixed radix over their range when that fits (one 1-D sort),
-    else ``unique(dim=0)`` (a lexicographic sort)."""
-    if keys.shape[0] == 0:
-        return keys.new_zeros(0), 0
-    low = keys.min(0).values
-    spans = (keys.max(0).values - low + 1).tolist()
-    if math.prod(spans) < (1 << 62):
-        shifted = keys - low
-        packed = shifted[:, 0]
-        for axis in range(1, keys.shape[1]):
-            packed = packed * spans[axis] + shifted[:, axis]
-        unique, ids = torch.unique(packed, return_inverse=True)
-    else:
-        unique, ids = torch.unique(keys, dim=0, return_inverse=True)
-    return ids, unique.shape[0]
-
-
-def parent_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: ParentRule
-                 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Candidate parents of every anchor above level 0: (anchor [E] long, parent index [E,3] long at
-    level - 1, weight [E]). levels [V] long, positions [V,3]. Weights of one anchor sum to 1."""
-    fine = (levels > 0).nonzero().squeeze(1)
-    if rule == "paper":
-        index = grid.grid_index(positions.detach()[fine], levels[fine] - 1)
-        return fine, index, positions.new_ones(fine.shape[0])
-    own = grid.grid_index(positions.detach()[fine], levels[fine])  # [F,3]
-    base = torch.div(own, grid.fork, rounding_mode="floor")
-    frac = (own - base * grid.fork).to(positions.dtype) / grid.fork  # [F,3] position of k/b in its cell
-    corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], device=levels.device)
-    per_axis = torch.where(corners[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :])  # [F,8,3]
-    weights = per_axis.prod(-1)  # [F,8]
-    keep = weights > 0
-    anchor = fine[:, None].expand(-1, 8)[keep]
-    return anchor, (base[:, None, :] + corners[None])[keep], weights[keep]
 
 
 @dataclass
@@ -105,65 +67,47 @@ class ContextLookup:
     child_pooled: Tensor
 
 
-def context_lookup(features: Tensor, levels: Tensor, positions: Tensor, grid: OctreeGrid,
-                   parent_rule: ParentRule = "trilinear", reduce: str = "mean") -> ContextLookup:
+def context_lookup(features: Tensor, graph: ContextGraph, reduce: str = "mean") -> ContextLookup:
     """c_parent, c_self, c_child of the visible anchors of one view (paper Eqs. 2-4, see module doc).
 
-    features [V,d]; levels [V] long; positions [V,3]; reduce "mean" (weighted mean) | "amax" (max over
-    the found anchors, weights ignored).
+    features [V,d] in the graph's anchor order; reduce "mean" (weighted mean) | "amax" (max over the
+    found anchors, weights ignored).
     """
     num, dim = features.shape
-    self_index = grid.grid_index(positions.detach(), levels)
-    self_keys = torch.cat([levels[:, None], self_index], 1)
-    anchor, parent_index, weight = parent_edges(levels, positions, grid, parent_rule)
-    parent_keys = torch.cat([levels[anchor, None] - 1, parent_index], 1)
-    ids, num_cells = dense_cell_ids(torch.cat([self_keys, parent_keys]))
-    self_ids, edge_cells = ids[:num], ids[num:]
-
-    counts = torch.bincount(self_ids, minlength=num_cells)
-    present = counts[edge_cells] > 0  # the candidate parent cell holds a visible anchor
-    anchor, edge_cells, weight = anchor[present], edge_cells[present], weight[present].to(features.dtype)
+    parent_found = graph.parent_weight() > 0
+    child_found = graph.child_weight()[graph.cell] > 0
     if reduce == "mean":
-        self_pool = features.new_zeros(num_cells, dim).index_add(0, self_ids, features)
-        self_pool = self_pool / counts.clamp_min(1)[:, None].to(features.dtype)
+        pooled = graph.cell_mean()(features)  # [K,d]
+        parent = graph.parent_mean()(pooled)
+        child = graph.child_mean()(features).index_select(0, graph.cell)
     else:
-        self_pool = features.new_zeros(num_cells, dim).scatter_reduce(
-            0, self_ids[:, None].expand(-1, dim), features, "amax", include_self=False)
-    own = self_pool.index_select(0, self_ids)
-
-    def gather(target: Tensor, values: Tensor, size: int) -> tuple[Tensor, Tensor]:
-        """Weighted mean (or max) of values [E,d] into rows target [E] of a [size,d] table."""
-        total = weight.new_zeros(size).index_add(0, target, weight)
-        if reduce == "mean":
-            pooled = features.new_zeros(size, dim).index_add(0, target, weight[:, None] * values)
-            return pooled / total.clamp_min(1e-12)[:, None], total > 0
-        pooled = features.new_zeros(size, dim).scatter_reduce(
-            0, target[:, None].expand(-1, dim), values, "amax", include_self=False)
-        return pooled, total > 0
-
-    parent, parent_found = gather(anchor, self_pool.index_select(0, edge_cells), num)
-    child_cells, child_cell_found = gather(edge_cells, features.index_select(0, anchor), num_cells)
-    child = child_cells.index_select(0, self_ids)
-    child_found = child_cell_found[self_ids]
-    parent_pooled = torch.zeros(num, dtype=torch.long, device=levels.device).index_add(
-        0, anchor, counts[edge_cells])
-    child_pooled = torch.bincount(edge_cells, minlength=num_cells)[self_ids]
-    if parent_rule == "paper":  # the paper's fallback: an empty lookup reads c_self
-        parent = torch.where(parent_found[:, None], parent, own)
-        child = torch.where(child_found[:, None], child, own)
+        def amax(target: Tensor, values: Tensor, size: int) -> Tensor:
+            return features.new_zeros(size, dim).scatter_reduce(
+                0, target[:, None].expand(-1, dim), values, "amax", include_self=False)
+        pooled = amax(graph.cell, features, graph.num_cells)
+        parent = amax(graph.anchor, pooled.index_select(0, graph.edge_cell), num)
+        child = amax(graph.edge_cell, features.index_select(0, graph.anchor), graph.num_cells
+                     ).index_select(0, graph.cell)
+    own = pooled.index_select(0, graph.cell)
+    parent_pooled = torch.zeros(num, dtype=torch.long, device=features.device).index_add(
+        0, graph.anchor, graph.count[graph.edge_cell])
+    child_pooled = torch.bincount(graph.edge_cell, minlength=graph.num_cells)[graph.cell]
+    if graph.rule == "paper":  # the paper's fallback: an empty lookup reads c_self
+        parent = parent + (~parent_found)[:, None] * own
+        child = child + (~child_found)[:, None] * own
     return ContextLookup(parent, own, child, parent_found, child_found, parent_pooled, child_pooled)
 
 
-def context_triplet(features: Tensor, levels: Tensor, positions: Tensor, grid: OctreeGrid,
-                    parent_rule: ParentRule = "trilinear", reduce: str = "mean",
+def context_triplet(features: Tensor, graph: ContextGraph, reduce: str = "mean",
                     missing: Tensor | None = None) -> Tensor:
     """The MLP input [V,3,d]: (c_parent, c_self, c_child), with missing [2,d] (parent, child rows)
     where a context is absent under the trilinear rule (zeros if missing is None)."""
-    found = context_lookup(features, levels, positions, grid, parent_rule, reduce)
+    found = context_lookup(features, graph, reduce)
     parent, child = found.parent, found.child
-    if parent_rule != "paper" and missing is not None:
-        parent = torch.where(found.parent_found[:, None], parent, missing[0])
-        child = torch.where(found.child_found[:, None], child, missing[1])
+    if graph.rule != "paper" and missing is not None:
+        # parent / child are exactly 0 where absent: adding is where() without its two-branch backward.
+        parent = parent + (~found.parent_found)[:, None] * missing[0]
+        child = child + (~found.child_found)[:, None] * missing[1]
     return torch.stack([parent, found.own, child], 1)
 
 
@@ -192,20 +136,33 @@ class ContextConfig(InstantiateConfig):
 
 
 class ContextAggregator(nn.Module):
-    """Maps the visible anchors' raw features to enhanced ones: features [V,d] -> [V,d]."""
+    """Maps the visible anchors' raw features to enhanced ones: features [V,d], graph -> [V,d].
+
+    ``graph`` (context_graph.ContextGraph) says which visible anchors each one's contexts read; the
+    field gets it from ``graph()``, which keeps the relation over all anchors between steps.
+    """
 
     reduce = "mean"
+    reads_context = True
+    """False for an aggregator that ignores the graph (the field then does not build it)."""
 
     def __init__(self, config: ContextConfig, feature_dim: int):
         super().__init__()
         self.config = config
         self.feature_dim = feature_dim
+        self._index: ContextIndex | None = None
 
-    def lookup(self, features: Tensor, levels: Tensor, positions: Tensor, grid: OctreeGrid) -> ContextLookup:
+    def graph(self, levels: Tensor, positions: Tensor, visible: Tensor, grid: OctreeGrid) -> ContextGraph:
+        """levels [N], positions [N,3] of all anchors, visible [V] ascending -> the view's graph."""
+        if self._index is None or self._index.grid is not grid:
+            self._index = ContextIndex(grid, self.config.parent_rule)
+        return self._index.view(levels, positions, visible)
+
+    def lookup(self, features: Tensor, graph: ContextGraph) -> ContextLookup:
         """The contexts this aggregator reads (for statistics; ``none`` reports its would-be lookup)."""
-        return context_lookup(features, levels, positions, grid, self.config.parent_rule, self.reduce)
+        return context_lookup(features, graph, self.reduce)
 
-    def forward(self, features: Tensor, levels: Tensor, positions: Tensor, grid: OctreeGrid) -> Tensor:
+    def forward(self, features: Tensor, graph: ContextGraph) -> Tensor:
         raise NotImplementedError
 
 
@@ -213,7 +170,9 @@ class ContextAggregator(nn.Module):
 class NoContext(ContextAggregator):
     """The ablation without CLCA: f_hat = f (no parameters)."""
 
-    def forward(self, features, levels, positions, grid):
+    reads_context = False
+
+    def forward(self, features, graph):
         return features
 
 
@@ -231,9 +190,8 @@ class _TripletAggregator(ContextAggregator):
         super().__init__(config, feature_dim)
         self.missing = nn.Parameter(0.02 * torch.randn(2, feature_dim))
 
-    def triplet(self, features, levels, positions, grid) -> Tensor:
-        return context_triplet(features, levels, positions, grid, self.config.parent_rule, self.reduce,
-                               self.missing)
+    def triplet(self, features: Tensor, graph: ContextGraph) -> Tensor:
+        return context_triplet(features, graph, self.reduce, self.missing)
 
 
 @CONTEXT_AGGREGATORS.register("mean")
@@ -250,8 +208,8 @@ class MeanContext(_TripletAggregator):
                                  nn.Linear(hidden, feature_dim, bias=config.bias))
         _near_zero_(self.mlp[2])
 
-    def forward(self, features, levels, positions, grid):
-        return features + self.mlp(self.triplet(features, levels, positions, grid).flatten(1))
+    def forward(self, features, graph):
+        return features + self.mlp(self.triplet(features, graph).flatten(1))
 
 
 @CONTEXT_AGGREGATORS.register("max")
@@ -287,8 +245,8 @@ class AttentionContext(_TripletAggregator):
             for layer in (self.query, self.key, self.value):
                 nn.init.zeros_(layer.bias)
 
-    def forward(self, features, levels, positions, grid):
-        triplet = self.triplet(features, levels, positions, grid) + self.roles
+    def forward(self, features, graph):
+        triplet = self.triplet(features, graph) + self.roles
         q = self.query(features)  # [V,h]
         k, v = self.key(triplet), self.value(triplet)  # [V,3,h]
         weights = torch.softmax((k @ q[:, :, None]).squeeze(-1) / math.sqrt(q.shape[1]), dim=1)  # [V,3]

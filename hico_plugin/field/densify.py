@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.field.context import dense_cell_ids, parent_edges
+from hico_plugin.field.context_graph import dense_cell_ids, parent_edges
 from hico_plugin.field.octree import OctreeGrid, visibility_fraction
 
 

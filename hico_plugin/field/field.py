@@ -190,8 +190,8 @@ class AnchorField(nn.Module):
         features = self.anchor_features.index_select(0, visible_ids)
         positions = self.anchors.index_select(0, visible_ids)
         levels = self.levels.index_select(0, visible_ids)
-        if context_enabled:
-            features = self.context(features, levels, positions, self.grid)
+        if context_enabled and self.context.reads_context:
+            features = self.context(features, self.context.graph(self.levels, self.anchors, visible_ids, self.grid))
         return self.decoder(features, positions, self.offsets.index_select(0, visible_ids),
                             torch.exp(self.log_scaling.index_select(0, visible_ids)), levels,
                             camera.center.to(positions), camera.index, visible_ids)
@@ -332,7 +332,8 @@ class AnchorField(nn.Module):
     @torch.no_grad()
     def parent_found(self) -> Tensor:
         """[N] bool: CLCA's lookup finds a parent context, every anchor counted as visible (overlay)."""
-        return self.context.lookup(self.anchor_features, self.levels, self.anchors.detach(), self.grid).parent_found
+        every = torch.arange(self.num_anchors, device=self.levels.device)
+        return self.context.graph(self.levels, self.anchors, every, self.grid).parent_weight() > 0
 
     def anchor_points(self) -> tuple[Tensor, Tensor]:
         """(positions [N,3], levels [N]) of all anchors, detached (viewer, export)."""

@@ -26,10 +26,10 @@ def view_lookup_sums(field, camera: Camera, step: int | None = None) -> Tensor:
     """Per-level sums of one view's lookup: [num_levels, len(SUMS)] float64 (see SUMS)."""
     ids = field.select(camera, step)
     features = field.anchor_features.index_select(0, ids)
-    positions = field.anchors.detach().index_select(0, ids)
     levels = field.levels.index_select(0, ids)
-    found = field.context.lookup(features, levels, positions, field.grid)
-    enhanced = field.context(features, levels, positions, field.grid)
+    graph = field.context.graph(field.levels, field.anchors, ids, field.grid)
+    found = field.context.lookup(features, graph)
+    enhanced = field.context(features, graph)
     columns = (torch.ones_like(levels), found.parent_found, found.child_found,
                found.parent_pooled, found.child_pooled,
                (enhanced - features).square().sum(1), features.square().sum(1))

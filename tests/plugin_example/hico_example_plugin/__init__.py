@@ -15,7 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from hico_plugin.field.context import CONTEXT_AGGREGATORS, ContextAggregator, ContextConfig, context_triplet
-from hico_plugin.field.octree import OctreeGrid
+from hico_plugin.field.context_graph import ContextGraph
 from hico_plugin.presets import PRESETS, register_preset
 
 
@@ -33,8 +33,8 @@ class GatedMeanContext(ContextAggregator):
         nn.init.zeros_(self.mix.weight)
         nn.init.zeros_(self.mix.bias)
 
-    def forward(self, features: Tensor, levels: Tensor, positions: Tensor, grid: OctreeGrid) -> Tensor:
-        triplet = context_triplet(features, levels, positions, grid, self.config.parent_rule)  # [V,3,d]
+    def forward(self, features: Tensor, graph: ContextGraph) -> Tensor:
+        triplet = context_triplet(features, graph)  # [V,3,d]
         return features + torch.sigmoid(self.gate) * self.mix(triplet.mean(1))
 
 
