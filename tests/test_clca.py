@@ -12,6 +12,13 @@ from hico_plugin.field import (
     dense_cell_ids)
 from hico_plugin.field.octree import voxelize
 
+@pytest.fixture(autouse=True)
+def _check_sparse_invariants():
+    """The sparse products' matrices must be valid CSR (sorted, in range): checked here, not in training."""
+    with torch.sparse.check_sparse_tensor_invariants():
+        yield
+
+
 GRID = OctreeGrid(origin=(0.5, -1.0, 2.0), cube_size=16.0, voxel_size=2.0, num_levels=4, fork=2,
                   d_std=10.0, init_level=2)
 

@@ -77,9 +77,11 @@ def context_lookup(features: Tensor, graph: ContextGraph, reduce: str = "mean") 
     parent_found = graph.parent_weight() > 0
     child_found = graph.child_weight()[graph.cell] > 0
     if reduce == "mean":
+        of_cell = graph.of_cell()
         pooled = graph.cell_mean()(features)  # [K,d]
+        own = of_cell(pooled)
         parent = graph.parent_mean()(pooled)
-        child = graph.child_mean()(features).index_select(0, graph.cell)
+        child = of_cell(graph.child_mean()(features))
     else:
         def amax(target: Tensor, values: Tensor, size: int) -> Tensor:
             return features.new_zeros(size, dim).scatter_reduce(
@@ -88,7 +90,7 @@ def context_lookup(features: Tensor, graph: ContextGraph, reduce: str = "mean") 
         parent = amax(graph.anchor, pooled.index_select(0, graph.edge_cell), num)
         child = amax(graph.edge_cell, features.index_select(0, graph.anchor), graph.num_cells
                      ).index_select(0, graph.cell)
-    own = pooled.index_select(0, graph.cell)
+        own = pooled.index_select(0, graph.cell)
     parent_pooled = torch.zeros(num, dtype=torch.long, device=features.device).index_add(
         0, graph.anchor, graph.count[graph.edge_cell])
     child_pooled = torch.bincount(graph.edge_cell, minlength=graph.num_cells)[graph.cell]
