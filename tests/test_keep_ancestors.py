@@ -1,5 +1,8 @@
 """Densification keeps the octree a tree for CLCA's trilinear lookup (DensifyConfig.keep_ancestors)."""
 
+import itertools
+import math
+
 import torch
 
 from hico_plugin.field.densify import GrownAnchors, close_ancestors, orphan_edges
@@ -67,3 +70,75 @@ def test_nothing_changes_when_every_anchor_has_a_parent():
     empty = GrownAnchors(positions[:0], levels[:0], torch.zeros(0, 2))
     kept, out = close_ancestors(positions, levels, torch.zeros(3, 2), keep, empty, GRID)
     assert kept.all() and out.positions.shape[0] == 0
+
+
+def slow_close_ancestors(positions, levels, features, keep, grown):
+    """The rule one round at a time over every anchor, with Python loops: (keep, {(level, i, j, k): feature})."""
+    keep = keep.clone()
+    index = GRID.grid_index(positions, levels)
+    members = [(int(levels[n]), tuple(index[n].tolist()), features[n]) for n in range(len(levels))]
+    grown_index = GRID.grid_index(grown.positions, grown.levels)
+    extra = [(int(grown.levels[n]), tuple(grown_index[n].tolist()), grown.features[n]) for n in range(len(grown.levels))]
+    for _ in range(GRID.num_levels - 1):
+        live = [m for n, m in enumerate(members) if keep[n]] + extra
+        cells = {(lev, idx) for lev, idx, _ in live}
+        orphans = []
+        for lev, idx, feat in live:
+            if lev == 0:
+                continue
+            candidates = []
+            for corner in itertools.product((0, 1), repeat=3):
+                parent, weight = [], 1.0
+                for axis in range(3):
+                    half = idx[axis] / 2
+                    low = math.floor(half)
+                    parent.append(low + corner[axis])
+                    weight *= (half - low) if corner[axis] else 1.0 - (half - low)
+                if weight > 0:
+                    candidates.append(((lev - 1, tuple(parent)), weight))
+            if not any(cell in cells for cell, _ in candidates):
+                orphans.append((candidates, feat))
+        if not orphans:
+            break
+        wanted = {cell for candidates, _ in orphans for cell, _ in candidates}
+        revived = {(lev, idx) for n, (lev, idx, _) in enumerate(members) if not keep[n] and (lev, idx) in wanted}
+        for n, (lev, idx, _) in enumerate(members):
+            if (lev, idx) in revived:
+                keep[n] = True
+        new = {}
+        for candidates, feat in orphans:
+            if any(cell in revived for cell, _ in candidates):
+                continue
+            best = max(w for _, w in candidates)
+            cell = next(c for c, w in candidates if w == best)
+            new[cell] = feat if cell not in new else torch.maximum(new[cell], feat)
+        extra += [(lev, idx, feat) for (lev, idx), feat in new.items()]
+    return keep, {(lev, idx): feat for lev, idx, feat in extra}
+
+
+def test_close_ancestors_matches_the_slow_rule_on_random_trees():
+    """Only the first round checks every anchor; later ones check what the previous round added. The
+    result must equal the rule applied to every anchor in every round."""
+    for seed in range(6):
+        gen = torch.Generator().manual_seed(seed)
+        levels = torch.randint(0, 4, (80,), generator=gen)
+        index = torch.stack([torch.randint(0, 2 ** int(lev) * 3, (3,), generator=gen) for lev in levels])
+        keys = torch.unique(torch.cat([levels[:, None], index], 1), dim=0)  # one anchor per cell
+        positions, levels = GRID.grid_position(keys[:, 1:], keys[:, 0]), keys[:, 0]
+        features = torch.randn(len(levels), 3, generator=gen)
+        keep = torch.rand(len(levels), generator=gen) > 0.3
+        grown_levels = torch.randint(1, 4, (6,), generator=gen)
+        grown_index = torch.stack([torch.randint(0, 2 ** int(lev) * 3, (3,), generator=gen) for lev in grown_levels])
+        taken = {tuple(row) for row in keys.tolist()}
+        fresh = torch.tensor([(int(lev), *idx) not in taken for lev, idx in zip(grown_levels, grown_index.tolist())])
+        grown = GrownAnchors(GRID.grid_position(grown_index[fresh], grown_levels[fresh]), grown_levels[fresh],
+                             torch.randn(int(fresh.sum()), 3, generator=gen))
+        kept, out = close_ancestors(positions, levels, features, keep, grown, GRID)
+        slow_keep, slow_extra = slow_close_ancestors(positions, levels, features, keep, grown)
+        assert torch.equal(kept, slow_keep), seed
+        out_index = GRID.grid_index(out.positions, out.levels)
+        fast_extra = {(int(out.levels[n]), tuple(out_index[n].tolist())): out.features[n] for n in range(len(out.levels))}
+        assert fast_extra.keys() == slow_extra.keys(), seed
+        for cell, feat in slow_extra.items():
+            assert torch.equal(fast_extra[cell], feat), (seed, cell)
+        assert len(slow_extra) > len(grown.levels) and not kept.all()  # the case exercises new and revived anchors

@@ -142,20 +142,32 @@ def prune_decision(opacity_accum: Tensor, anchor_denom: Tensor, min_opacity: flo
     return judged & (opacity_accum < min_opacity * anchor_denom), judged
 
 
-def orphan_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def rows_in(queries: Tensor, table: Tensor) -> Tensor:
+    """[Q] bool: which rows of queries [Q,4] long occur among the rows of table [T,4] long."""
+    ids, num_cells = dense_cell_ids(torch.cat([table, queries]))
+    held = torch.zeros(num_cells, dtype=torch.bool, device=queries.device)
+    held[ids[: table.shape[0]]] = True
+    return held[ids[table.shape[0]:]]
+
+
+def cell_keys(positions: Tensor, levels: Tensor, grid: OctreeGrid) -> Tensor:
+    """[N,4] long (level, grid index): the cell each anchor occupies."""
+    return torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
+
+
+def orphan_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, occupied: Tensor | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Anchors above level 0 none of whose trilinear candidate parents holds an anchor.
 
-    levels [N] long, positions [N,3] -> (orphan [N] bool, and the orphans' candidate edges: anchor [E]
-    long, parent key [E,4] long (level, index), weight [E]).
+    levels [N] long, positions [N,3]; occupied [T,4] long: the cells that hold an anchor (default:
+    the anchors' own cells) -> (orphan [N] bool, and the orphans' candidate edges: anchor [E] long,
+    parent key [E,4] long (level, index), weight [E]).
     """
     anchor, parent_index, weight = parent_edges(levels, positions, grid, "trilinear")
-    self_keys = torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
     parent_keys = torch.cat([levels[anchor, None] - 1, parent_index], 1)
-    ids, num_cells = dense_cell_ids(torch.cat([self_keys, parent_keys]))
-    occupied = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
-    occupied[ids[: levels.shape[0]]] = True
-    has_parent = torch.zeros_like(occupied[: levels.shape[0]])
-    has_parent[anchor[occupied[ids[levels.shape[0]:]]]] = True
+    table = cell_keys(positions, levels, grid) if occupied is None else occupied
+    has_parent = torch.zeros(levels.shape[0], dtype=torch.bool, device=levels.device)
+    has_parent[anchor[rows_in(parent_keys, table)]] = True
     orphan = (levels > 0) & ~has_parent
     on_orphan = orphan[anchor]
     return orphan, anchor[on_orphan], parent_keys[on_orphan], weight[on_orphan]
@@ -170,47 +182,49 @@ def close_ancestors(positions: Tensor, levels: Tensor, features: Tensor, keep: T
     appended). A pruned anchor in a candidate parent cell is revived (it keeps its training); an
     orphan with none gets a new anchor at its highest-weight candidate, whose own parent is then
     checked in the next round: at most num_levels - 1 rounds.
+
+    Anchors are only added, so an anchor that has a parent keeps it: after the first round (all kept and
+    grown anchors) only the anchors the previous round revived or created can be orphans, and only they
+    are checked -- against every occupied cell.
     """
     keep = keep.clone()
+    own_keys = cell_keys(positions, levels, grid)  # [N,4]
     extra_positions, extra_levels, extra_features = [grown.positions], [grown.levels], [grown.features]
-    dead_keys = torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
+    check_positions = torch.cat([positions[keep], grown.positions])
+    check_levels = torch.cat([levels[keep], grown.levels])
+    check_features = torch.cat([features[keep], grown.features])
+    occupied = torch.cat([own_keys[keep], cell_keys(grown.positions, grown.levels, grid)])
     for _ in range(grid.num_levels - 1):
-        all_positions = torch.cat([positions[keep], *extra_positions])
-        all_levels = torch.cat([levels[keep], *extra_levels])
-        all_features = torch.cat([features[keep], *extra_features])
-        orphan, anchor, parent_keys, weight = orphan_edges(all_levels, all_positions, grid)
+        orphan, anchor, parent_keys, weight = orphan_edges(check_levels, check_positions, grid, occupied)
         if not orphan.any():
             break
         # revive pruned anchors sitting in a candidate parent cell of an orphan
         dead = (~keep).nonzero().squeeze(1)
-        ids, num_cells = dense_cell_ids(torch.cat([parent_keys, dead_keys[dead]]))
-        edge_cells, dead_cells = ids[: parent_keys.shape[0]], ids[parent_keys.shape[0]:]
-        wanted = torch.zeros(num_cells, dtype=torch.bool, device=levels.device)
-        wanted[edge_cells] = True
-        revived = wanted[dead_cells]
-        keep[dead[revived]] = True
-        refilled = torch.zeros_like(wanted)
-        refilled[dead_cells[revived]] = True
+        revived = dead[rows_in(own_keys[dead], parent_keys)]
+        keep[revived] = True
         served = torch.zeros_like(orphan)
-        served[anchor[refilled[edge_cells]]] = True
+        served[anchor[rows_in(parent_keys, own_keys[revived])]] = True
         # the rest: a new anchor at each remaining orphan's highest-weight candidate (first on ties)
         pending = orphan & ~served
-        if pending.any():
-            on_pending = pending[anchor]
-            edge_anchor, edge_keys, edge_weight = anchor[on_pending], parent_keys[on_pending], weight[on_pending]
-            num = orphan.shape[0]
-            top = edge_weight.new_zeros(num).scatter_reduce(0, edge_anchor, edge_weight, "amax", include_self=False)
-            is_top = edge_weight == top[edge_anchor]
-            edge_ids = torch.arange(edge_anchor.shape[0], device=levels.device)
-            first_top = torch.full((num,), edge_anchor.shape[0], dtype=torch.long, device=levels.device)
-            first_top = first_top.scatter_reduce(0, edge_anchor[is_top], edge_ids[is_top], "amin")
-            rows = first_top[pending]
-            cells, slot = torch.unique(edge_keys[rows], dim=0, return_inverse=True)
-            new_features = features.new_zeros(cells.shape[0], features.shape[1]).scatter_reduce(
-                0, slot[:, None].expand(-1, features.shape[1]), all_features[pending], "amax",
-                include_self=False)
-            extra_levels.append(cells[:, 0])
-            extra_positions.append(grid.grid_position(cells[:, 1:], cells[:, 0], positions.dtype))
-            extra_features.append(new_features)
+        on_pending = pending[anchor]
+        edge_anchor, edge_keys, edge_weight = anchor[on_pending], parent_keys[on_pending], weight[on_pending]
+        num = orphan.shape[0]
+        top = edge_weight.new_zeros(num).scatter_reduce(0, edge_anchor, edge_weight, "amax", include_self=False)
+        is_top = edge_weight == top[edge_anchor]
+        edge_ids = torch.arange(edge_anchor.shape[0], device=levels.device)
+        first_top = torch.full((num,), edge_anchor.shape[0], dtype=torch.long, device=levels.device)
+        first_top = first_top.scatter_reduce(0, edge_anchor[is_top], edge_ids[is_top], "amin")
+        new_keys, slot = torch.unique(edge_keys[first_top[pending]], dim=0, return_inverse=True)
+        new_features = features.new_zeros(new_keys.shape[0], features.shape[1]).scatter_reduce(
+            0, slot[:, None].expand(-1, features.shape[1]), check_features[pending], "amax", include_self=False)
+        new_positions = grid.grid_position(new_keys[:, 1:], new_keys[:, 0], positions.dtype)
+        extra_positions.append(new_positions)
+        extra_levels.append(new_keys[:, 0])
+        extra_features.append(new_features)
+        # next round: only what this round added
+        check_positions = torch.cat([positions[revived], new_positions])
+        check_levels = torch.cat([levels[revived], new_keys[:, 0]])
+        check_features = torch.cat([features[revived], new_features])
+        occupied = torch.cat([occupied, own_keys[revived], new_keys])
     return keep, GrownAnchors(torch.cat(extra_positions), torch.cat(extra_levels), torch.cat(extra_features))
 
