@@ -4,7 +4,7 @@
 training step goes through and adds synchronised ``perf_counter`` intervals per stage:
 
     lod_select      field.select                       (LOD, Eq. 1, + frustum culling)
-    clca            field.context                      (Sec. 3.3; near zero for context "none")
+    clca            field.context + its graph          (Sec. 3.3; near zero for context "none")
     decode          field.decode minus clca            (gathers + neural-Gaussian MLPs)
     rasterize       renderer forward
     losses          model.losses                       (L1 + D-SSIM, DNGC once w(t) > 0)
@@ -109,6 +109,7 @@ class StageTimer:
         patch(field, "select", self.wrap("lod_select", field.select))
         patch(field, "decode", self.wrap("decode", field.decode))
         patch(field.context, "forward", self.wrap("clca", field.context.forward))
+        patch(field.context, "graph", self.wrap("clca", field.context.graph))  # which anchors it reads
         # Renderer and Losses are plain callable objects: ``__call__`` is looked up on the type, so
         # the model's attribute is replaced by a proxy.
         patch(model, "renderer", _TimedCall(model.renderer, self.wrap("rasterize", model.renderer)))

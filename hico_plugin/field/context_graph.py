@@ -64,12 +64,11 @@ def parent_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: Pare
     own = grid.grid_index(positions.detach()[fine], levels[fine])  # [F,3]
     base = torch.div(own, grid.fork, rounding_mode="floor")
     frac = (own - base * grid.fork).to(positions.dtype) / grid.fork  # [F,3] position of k/b in its cell
+    axis = torch.stack([1.0 - frac, frac], 2)  # [F,3,2]: weight of the lower / upper point per axis
+    weights = (axis[:, 0, :, None, None] * axis[:, 1, None, :, None] * axis[:, 2, None, None, :]).reshape(-1, 8)
+    rows, corner = (weights > 0).nonzero(as_tuple=True)  # by anchor, then corner (x slowest)
     corners = torch.tensor(_CORNERS, device=levels.device)
-    per_axis = torch.where(corners[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :])  # [F,8,3]
-    weights = per_axis.prod(-1)  # [F,8]
-    keep = weights > 0
-    anchor = fine[:, None].expand(-1, 8)[keep]
-    return anchor, (base[:, None, :] + corners[None])[keep], weights[keep]
+    return fine[rows], base[rows] + corners[corner], weights[rows, corner]
 
 
 def _csr(rows: Tensor, cols: Tensor, values: Tensor, shape: tuple[int, int]) -> Tensor:
