@@ -97,3 +97,10 @@ def test_a_run_from_before_orientation_and_kept_ancestors_loads_as_it_was_traine
     save_config(all_presets()["hico-gs-lite"][1], path)
     loaded = load_config(path)
     assert loaded.data.orient is True and loaded.model.field.densify.keep_ancestors is True
+    # a whole run's file from before: its data source (a subclass of the parser config) without orient
+    text = path.read_text()
+    assert "\n  orient: true\n" in text and "\n      keep_ancestors: true\n" in text
+    path.write_text(text.replace("\n  orient: true\n", "\n").replace("\n      keep_ancestors: true\n", "\n"))
+    old = load_config(path)
+    assert type(old.data).__name__ == "DataSourceConfig"
+    assert old.data.orient is False and old.model.field.densify.keep_ancestors is False

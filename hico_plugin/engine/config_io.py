@@ -46,6 +46,15 @@ _ADDED_FIELDS = {
 }
 
 
+def _added_fields(cls: type) -> dict[str, Any]:
+    """The ``_ADDED_FIELDS`` values of ``cls`` and of the classes it derives from (a run's config.yml
+    names the subclass it was built with, e.g. the data source, not the parser config that has the field)."""
+    added: dict[str, Any] = {}
+    for base in reversed(cls.__mro__):
+        added.update(_ADDED_FIELDS.get(f"{base.__module__}.{base.__qualname__}", {}))
+    return added
+
+
 class _ConfigDumper(yaml.SafeDumper):
     pass
 
@@ -132,7 +141,7 @@ def _construct_dataclass(loader: _ConfigLoader, suffix: str, node: yaml.Node) ->
         raise HicoError(f"{loader.name}: '{suffix}' is not a config dataclass")
     values = loader.construct_mapping(node, deep=True) if isinstance(node, yaml.MappingNode) else {}
     init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
-    values = {**_ADDED_FIELDS.get(suffix, {}), **values}
+    values = {**_added_fields(cls), **values}
     unknown = sorted(set(values) - init_fields)
     if unknown:
         raise HicoError(f"{loader.name}: unknown field(s) {', '.join(unknown)} for {cls.__qualname__}")
