@@ -150,3 +150,28 @@ def test_interrupted_hico_train_exits_130_with_the_resume_command(tmp_path):
     assert "SIGTERM: saving a checkpoint" in done.stderr
     assert "continue with: hico-train" in done.stderr and "--resume" in done.stderr
     assert latest_checkpoint(tmp_path / "run" / "checkpoints").name == "step-000000003.ckpt"
+
+
+def test_a_checkpoint_from_another_scene_frame_is_refused_in_one_line(tiny_run, tmp_path):
+    """Checkpoints record the dataset's frame (the scene normalisation); loading or resuming one into a
+    dataset normalised differently today (a changed rule, other settings) would be silently wrong."""
+    import shutil
+
+    from hico_plugin.cli.train import parse, train
+    from hico_plugin.engine.loading import load_run
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    config = run / "config.yml"
+    config.write_text(config.read_text().replace(str(tiny_run), str(run)))
+    checkpoint = sorted((run / "checkpoints").glob("*.ckpt"))[-1]
+    payload = torch.load(checkpoint, weights_only=True)
+    assert load_run(config).dataset.frame() == payload["frame"]  # recorded, and today's matches
+    payload["frame"]["scale"] *= 2.0
+    torch.save(payload, checkpoint)
+    with pytest.raises(HicoError, match=r"another scene frame than the dataset is loaded in now \(scale differ\)"):
+        load_run(config)
+    with pytest.raises(HicoError, match="another scene frame"):
+        train(parse(["hico-gs-lite", "--scene", "tiny", "--max-steps", "3", "--vis", "none", "--progress", "none",
+                     "--output-dir", str(run), "--resume", "--model.eval-lpips", "none",
+                     "--model.renderer.no-use-compile"]))

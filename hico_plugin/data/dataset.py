@@ -208,6 +208,11 @@ class Dataset:
         dist_min, dist_max = linear_quantiles(per_camera, [1.0 - dist_ratio, dist_ratio])[0].tolist()
         return dist_min, dist_max
 
+    def frame(self) -> dict:
+        """The scene frame the views are loaded in (the normalisation); checkpoints record it, so a model
+        is never loaded into another one (engine.checkpoints.check_frame)."""
+        return self.transform.to_dict()
+
     def cameras_extent(self) -> float:
         """NeRF++ radius of the train cameras: 1.1 x the largest distance of a centre from their mean
         (the positional learning-rate scale)."""

@@ -3,7 +3,8 @@
 A checkpoint holds only tensors, numbers, strings and containers, so it is read with
 ``torch.load(weights_only=True)``: a crafted file cannot run code (the config lives in config.yml).
 What it holds of a training run (``training_payload``): the step, model, optimizers, their schedules,
-every rank's RNG states, the training wall time and the number of workers.
+every rank's RNG states, the training wall time, the number of workers and the dataset's frame (the
+scene normalisation the model lives in, ``check_frame``).
 """
 
 from __future__ import annotations
@@ -158,9 +159,38 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def dataset_frame(dataset: Any) -> dict[str, Any] | None:
+    """What a model trained on ``dataset`` depends on besides its weights: the dataset's ``frame()``
+    (e.g. the scene normalisation), None for a dataset without one."""
+    frame = getattr(dataset, "frame", None)
+    return frame() if callable(frame) else None
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    try:
+        return bool(np.allclose(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64), rtol=1e-6, atol=1e-9))
+    except (TypeError, ValueError):
+        return a == b
+
+
+def check_frame(payload: dict[str, Any], frame: dict[str, Any] | None, path: Path) -> None:
+    """Refuse a checkpoint trained in another frame than the one the dataset is loaded in today (say the
+    normalisation changed since): its weights would render and resume silently wrong."""
+    stored = payload.get("frame")
+    if stored is None or frame is None:  # checkpoints from before frames were recorded; frameless data
+        return
+    if not _same(stored, frame):
+        changed = sorted(k for k in set(stored) | set(frame) if not _same(stored.get(k), frame.get(k)))
+        raise HicoError(f"{path}: the model was trained in another scene frame than the dataset is loaded in "
+                        f"now ({', '.join(changed)} differ); load it with the settings and version it was trained with")
+
+
 def training_payload(step: int, model: Any, optimizers: Optimizers, rng_states: list[dict[str, Any]],
-                     train_seconds: float, world_size: int) -> dict[str, Any]:
-    """The checkpoint of a training run after ``step`` completed steps; ``rng_states`` per rank."""
+                     train_seconds: float, world_size: int, frame: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The checkpoint of a training run after ``step`` completed steps; ``rng_states`` per rank; ``frame``
+    the dataset's (``dataset_frame``)."""
     return {
         "step": step,
         "model": model.state_dict(),
@@ -169,6 +199,7 @@ def training_payload(step: int, model: Any, optimizers: Optimizers, rng_states: 
         "rng": rng_states,
         "train_seconds": train_seconds,
         "world_size": world_size,
+        **({"frame": frame} if frame is not None else {}),
     }
 
 

@@ -11,7 +11,8 @@ from typing import Any
 
 from torch import nn
 
-from hico_plugin.engine.checkpoints import load_checkpoint, newest_readable_checkpoint, restore_model, seed_everything
+from hico_plugin.engine.checkpoints import (
+    check_frame, dataset_frame, load_checkpoint, newest_readable_checkpoint, restore_model, seed_everything)
 from hico_plugin.engine.config_io import load_config
 from hico_plugin.engine.distributed import resolve_device
 from hico_plugin.engine.trainer import TrainerConfig
@@ -57,6 +58,7 @@ def load_run(config_path: str | Path, checkpoint: str | Path | None = None, devi
         path, payload = _newest(config_path, config.output_dir)
     seed_everything(config.seed)
     model, dataset = config.build(resolve_device(device or config.device))
+    check_frame(payload, dataset_frame(dataset), path)
     restore_model(model, payload, path)
     if isinstance(model, nn.Module):
         model.eval()

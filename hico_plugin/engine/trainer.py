@@ -27,6 +27,8 @@ from hico_plugin.engine import distributed as dist_utils
 from hico_plugin.engine.callbacks import TrainerCallback, default_callbacks
 from hico_plugin.engine.checkpoints import (
     checkpoint_due,
+    check_frame,
+    dataset_frame,
     load_checkpoint,
     restore_model,
     restore_rank_rng,
@@ -254,6 +256,7 @@ class Trainer:
     def load_checkpoint(self, path: Path) -> None:
         """Restore model, optimizers, step, train time and RNG states from ``path``."""
         payload = load_checkpoint(Path(path))
+        check_frame(payload, dataset_frame(self.dataset), Path(path))
         restore_model(self.model, payload, Path(path))
         self.optimizers = self._make_optimizers()  # after loading: the model may hold new Parameters
         self.optimizers.load_state_dict(payload["optimizers"])
@@ -269,7 +272,8 @@ class Trainer:
         self._saved_step = self.step  # on every rank, so all agree on whether a final save is due
         if not self.is_main:
             return None
-        payload = training_payload(self.step, self.model, self.optimizers, states, self.train_seconds, self.world_size)
+        payload = training_payload(self.step, self.model, self.optimizers, states, self.train_seconds, self.world_size,
+                                   dataset_frame(self.dataset))
         self.last_checkpoint = save_checkpoint(self.checkpoint_dir, self.step, payload, self.config.keep_checkpoints)
         return self.last_checkpoint
 
