@@ -189,6 +189,11 @@ def test_seeded_ablation_marks_only_differences_beyond_two_standard_errors():
     assert "| hico-gs | 26.00 ± 0.10 | +1.00 ± 0.08 * |" in table
     assert "| hico-gs-clca | 25.07 ± 0.31 | +0.07 ± 0.19 |" in table
     assert "| octree-gs | 25.00 ± 0.10 |  |" in table
+    # a scene whose photos differ in exposure is ranked by colour-corrected PSNR
+    exposed = [{**c, "psnr_cc": c["psnr"] + 5.0, "psnr": 0.0, "effects_on": ["exposure", "lod"]}
+               for c in seeded_cells({"octree-gs": [25.0, 25.1, 24.9], "hico-gs": [26.0, 26.1, 25.9]})]
+    table = ablation_table(exposed)
+    assert "tiny PSNR-cc" in table and "| hico-gs | 31.00 ± 0.10 | +1.00 ± 0.08 * |" in table
 
 
 def test_seeds_multiply_the_runs(tmp_path):
