@@ -306,8 +306,10 @@ def test_cached_index_views_equal_fresh_graphs_and_rebuild_when_an_anchor_change
     index = ContextIndex(GRID, "trilinear")
     gen = torch.Generator().manual_seed(5)
     before = lookup(features, levels, positions)
-    for trial in range(4):
+    for trial in range(5):
         visible = torch.sort(torch.randperm(300, generator=gen)[:200]).values
+        if trial == 4:  # densification: other anchors (fewer here), the relation is rebuilt over them
+            features, levels, positions, visible = features[:250], levels[:250], positions[:250], visible[visible < 250]
         if trial == 3:  # move a fine anchor that has parents a whole voxel of its level: its cell changes
             moved = int(((levels == 3) & before.parent_found).nonzero()[0])
             positions = positions.clone()

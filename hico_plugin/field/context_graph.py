@@ -5,9 +5,11 @@
     pooled = graph.pool_cells(features)                   # c_self per cell, etc. (context.py)
 
 The relation depends only on each anchor's level and grid cell, which change when densification adds
-or prunes anchors or an anchor drifts into another cell -- rarely. ``ContextIndex`` therefore builds
-it once over all anchors (the sort over their cell keys) and reuses it while no anchor changed cell;
-a view then only filters it by visibility (no sort per step). The pooled contexts are weighted sums,
+or prunes anchors or an anchor drifts into another cell. ``ContextIndex`` builds it over all anchors
+(the sort over their cell keys) when the anchors change and, while no anchor has changed cell since,
+a view only filters it by visibility (no sort: evaluation, the viewer). Once some anchors have
+drifted into other cells (in training a few do most steps), a view builds the relation of its own
+anchors instead, as cheap as before the cache. The pooled contexts are weighted sums,
 applied as sparse CSR products whose transposes are kept for the backward pass: one pass over the
 edges each way instead of gathering, weighting and scattering [E,d] copies.
 """
@@ -209,13 +211,25 @@ class ContextIndex:
         """levels [N] long, positions [N,3] of all anchors; visible [V] long, ascending -> the graph of
         the visible anchors (their order)."""
         positions = positions.detach()
-        signature = self._cell_signature(levels, positions)
-        if self._signature is None or not torch.equal(signature, self._signature):
-            self._build(levels, positions, signature)
         if visible.shape[0] > 1 and bool((visible[1:] <= visible[:-1]).any()):
             raise ValueError("ContextIndex.view: visible ids must be ascending and unique")
-        device = levels.device
-        local = torch.full((levels.shape[0],), -1, dtype=torch.long, device=device)
+        signature = self._cell_signature(levels, positions)
+        same_anchors = self._signature is not None and torch.equal(signature[:, 0], self._signature[:, 0])
+        if not same_anchors:  # first call, or densification changed the anchors
+            self._build(levels, positions, signature)
+        elif not torch.equal(signature, self._signature):
+            # Some anchors drifted into another cell since the build. In training a few do nearly every
+            # step (those sitting near a rounding boundary), so rebuilding over all anchors would cost
+            # more than it saves: the view's own anchors get a relation of their own instead.
+            local = ContextIndex(self.grid, self.rule)
+            local._build(levels[visible], positions[visible], signature[visible])
+            return local._view(torch.arange(visible.shape[0], device=visible.device), positions.dtype)
+        return self._view(visible, positions.dtype)
+
+    def _view(self, visible: Tensor, dtype: torch.dtype) -> ContextGraph:
+        """The built relation restricted to ``visible`` [V] (ascending)."""
+        device = self._cell.device
+        local = torch.full((self._cell.shape[0],), -1, dtype=torch.long, device=device)
         local[visible] = torch.arange(visible.shape[0], device=device)
         # Renumber the cells the view's anchors hold 0..K-1 (order kept, so the cached orders by cell
         # stay sorted): the pooled tables then have at most V rows, not one per cell of the scene.
@@ -229,7 +243,7 @@ class ContextIndex:
         by_cell = kept_at[self._by_cell[keep[self._by_cell]]]
         members = local[self._members]
         return ContextGraph(self.rule, cell, count, local[self._anchor[keep]], renumber[self._edge_cell[keep]],
-                            self._weight[keep].to(positions.dtype), by_cell, members[members >= 0])
+                            self._weight[keep].to(dtype), by_cell, members[members >= 0])
 
 
 def context_graph(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: ParentRule = "trilinear"
