@@ -74,8 +74,8 @@ def context_lookup(features: Tensor, graph: ContextGraph, reduce: str = "mean") 
     found anchors, weights ignored).
     """
     num, dim = features.shape
-    parent_found = graph.parent_weight() > 0
-    child_found = graph.child_weight()[graph.cell] > 0
+    parent_found = graph.parent_weight > 0
+    child_found = graph.child_weight[graph.cell] > 0
     if reduce == "mean":
         of_cell = graph.of_cell()
         pooled = graph.cell_mean()(features)  # [K,d]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import torch
@@ -48,6 +49,11 @@ def dense_cell_ids(keys: Tensor) -> tuple[Tensor, int]:
     else:
         unique, ids = torch.unique(keys, dim=0, return_inverse=True)
     return ids, unique.shape[0]
+
+
+def cell_keys(positions: Tensor, levels: Tensor, grid: OctreeGrid) -> Tensor:
+    """[N,4] long (level, grid index): the cell each anchor occupies (positions [N,3], levels [N])."""
+    return torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
 
 
 def parent_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: ParentRule
@@ -135,10 +141,12 @@ class ContextGraph:
     def num_cells(self) -> int:
         return self.count.shape[0]
 
+    @cached_property
     def parent_weight(self) -> Tensor:
         """[V]: total weight of an anchor's present parents (0 = no parent context)."""
         return self.weight.new_zeros(self.num_anchors).index_add(0, self.anchor, self.weight)
 
+    @cached_property
     def child_weight(self) -> Tensor:
         """[K]: total weight of the finer anchors reading a cell (0 = no child context)."""
         return self.weight.new_zeros(self.num_cells).index_add(0, self.edge_cell, self.weight)
@@ -162,12 +170,12 @@ class ContextGraph:
 
     def parent_mean(self) -> WeightedSum:
         """[V,d] <- [K,d]: weighted mean over an anchor's parent cells (no parent: 0)."""
-        values = self.weight / self.parent_weight().clamp_min(1e-12)[self.anchor]
+        values = self.weight / self.parent_weight.clamp_min(1e-12)[self.anchor]
         return self._edge_sum(values, anchors_are_rows=True)
 
     def child_mean(self) -> WeightedSum:
         """[K,d] <- [V,d]: weighted mean over the finer anchors that have the cell as a parent."""
-        values = self.weight / self.child_weight().clamp_min(1e-12)[self.edge_cell]
+        values = self.weight / self.child_weight.clamp_min(1e-12)[self.edge_cell]
         return self._edge_sum(values, anchors_are_rows=False)
 
     def _edge_sum(self, values: Tensor, anchors_are_rows: bool) -> WeightedSum:
@@ -188,7 +196,7 @@ class ContextIndex:
 
     def _cell_signature(self, levels: Tensor, positions: Tensor) -> Tensor:
         """[N, 4 or 7] long: what the relation is made from (level, own cell; paper: + parent cell)."""
-        parts = [levels[:, None], self.grid.grid_index(positions, levels)]
+        parts = [cell_keys(positions, levels, self.grid)]
         if self.rule == "paper":
             parts.append(self.grid.grid_index(positions, (levels - 1).clamp_min(0)))
         return torch.cat(parts, 1)

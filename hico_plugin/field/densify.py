@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.field.context_graph import dense_cell_ids, parent_edges
+from hico_plugin.field.context_graph import cell_keys, dense_cell_ids, parent_edges
 from hico_plugin.field.octree import OctreeGrid, visibility_fraction
 
 
@@ -97,8 +97,8 @@ def grow_anchors(positions: Tensor, levels: Tensor, features: Tensor, offsets: T
     to_finer = next_level[rows, children]
     target_levels = levels[rows] + to_finer.long()
     centres = positions[rows] + offsets[rows, children] * torch.exp(log_scaling[rows, :3])
-    cand_keys = torch.cat([target_levels[:, None], grid.grid_index(centres, target_levels)], 1)
-    anchor_keys = torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
+    cand_keys = cell_keys(centres, target_levels, grid)
+    anchor_keys = cell_keys(positions, levels, grid)
 
     ids, num_cells = dense_cell_ids(torch.cat([anchor_keys, cand_keys]))
     occupied = torch.zeros(num_cells, dtype=torch.bool, device=positions.device)
@@ -148,11 +148,6 @@ def rows_in(queries: Tensor, table: Tensor) -> Tensor:
     held = torch.zeros(num_cells, dtype=torch.bool, device=queries.device)
     held[ids[: table.shape[0]]] = True
     return held[ids[table.shape[0]:]]
-
-
-def cell_keys(positions: Tensor, levels: Tensor, grid: OctreeGrid) -> Tensor:
-    """[N,4] long (level, grid index): the cell each anchor occupies."""
-    return torch.cat([levels[:, None], grid.grid_index(positions, levels)], 1)
 
 
 def orphan_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, occupied: Tensor | None = None

@@ -333,7 +333,7 @@ class AnchorField(nn.Module):
     def parent_found(self) -> Tensor:
         """[N] bool: CLCA's lookup finds a parent context, every anchor counted as visible (overlay)."""
         every = torch.arange(self.num_anchors, device=self.levels.device)
-        return self.context.graph(self.levels, self.anchors, every, self.grid).parent_weight() > 0
+        return self.context.graph(self.levels, self.anchors, every, self.grid).parent_weight > 0
 
     def anchor_points(self) -> tuple[Tensor, Tensor]:
         """(positions [N,3], levels [N]) of all anchors, detached (viewer, export)."""
