@@ -1,12 +1,16 @@
 """Densification keeps the octree a tree for CLCA's trilinear lookup (DensifyConfig.keep_ancestors)."""
 
+import dataclasses
 import itertools
 import math
 
+import pytest
 import torch
 
+from hico_plugin.field import AnchorField
 from hico_plugin.field.densify import GrownAnchors, close_ancestors, orphan_edges
 from hico_plugin.field.octree import OctreeGrid
+from hico_plugin.presets import PRESETS
 
 GRID = OctreeGrid(origin=(0.0, 0.0, 0.0), cube_size=64.0, voxel_size=1.0, num_levels=4, fork=2, d_std=1.0,
                   init_level=0)
@@ -142,3 +146,16 @@ def test_close_ancestors_matches_the_slow_rule_on_random_trees():
         for cell, feat in slow_extra.items():
             assert torch.equal(fast_extra[cell], feat), (seed, cell)
         assert len(slow_extra) > len(grown.levels) and not kept.all()  # the case exercises new and revived anchors
+
+
+@pytest.mark.parametrize(("preset", "densify_changes", "keeps"), [
+    ("hico-gs", {}, True), ("hico-gs-clca", {}, True), ("hico-gs-clca-paper", {}, False), ("octree-gs", {}, False),
+    ("octree-gs", {"keep_ancestors_without_context": True}, True),
+    ("hico-gs-clca-paper", {"keep_ancestors_without_context": True}, True),
+    ("hico-gs-clca", {"keep_ancestors": False}, False),
+    ("octree-gs", {"keep_ancestors": False, "keep_ancestors_without_context": True}, False)])
+def test_the_tree_is_kept_where_the_trilinear_lookup_reads_it_or_on_request(preset, densify_changes, keeps):
+    config = PRESETS[preset][1].model.field
+    config = dataclasses.replace(config, densify=dataclasses.replace(config.densify, **densify_changes))
+    positions, levels = anchors((0, 1, 1, 1), (1, 2, 2, 2))
+    assert AnchorField(config, positions, levels, GRID, torch.zeros(1, 3)).keeps_ancestors is keeps

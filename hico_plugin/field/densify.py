@@ -51,7 +51,12 @@ class DensifyConfig(InstantiateConfig):
     whose candidate parents holds an anchor gets one back (a pruned one is kept, else a new anchor at
     its nearest parent grid point, with its feature). Without it, grown and pruned anchors left 10-15 %
     of a trained pagoda's level 1-3 anchors without parent context. Used only when CLCA is on with
-    the trilinear rule (the paper's lookup and the base method densify as published)."""
+    the trilinear rule (the paper's lookup and the base method densify as published), unless
+    keep_ancestors_without_context is set."""
+    keep_ancestors_without_context: bool = False
+    """Keep the tree also where no trilinear CLCA lookup reads it (context kind none, or the paper's
+    lookup): the anchors the tree adds, without the context. This is the control that tells the two
+    apart in CLCA's ablation (README, "What CLCA and DNGC buy")."""
 
 
 def offset_gradients(grad_accum: Tensor, denom: Tensor, min_observations: float) -> tuple[Tensor, Tensor]:

@@ -133,9 +133,10 @@ class AnchorField(nn.Module):
         for name in STAT_BUFFERS:
             self.register_buffer(f"{name}_synced", getattr(self, name).clone())
         self.context = config.context.setup(feature_dim=d)
-        # The tree is kept only for the lookup that relies on it (DensifyConfig.keep_ancestors).
-        self.keeps_ancestors = (config.densify.keep_ancestors and config.context.kind != "none"
-                                and config.context.parent_rule == "trilinear")
+        # The tree is kept for the lookup that relies on it, or on request (DensifyConfig.keep_ancestors).
+        densify_config = config.densify
+        self.keeps_ancestors = densify_config.keep_ancestors and (densify_config.keep_ancestors_without_context or (
+            config.context.kind != "none" and config.context.parent_rule == "trilinear"))
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
         self.set_total_steps(total_steps)
         self.last_densify: dict[str, int] = {}
