@@ -223,6 +223,8 @@ class ContextIndex:
             raise ValueError("ContextIndex.view: visible ids must be ascending and unique")
         signature = self._cell_signature(levels, positions)
         same_anchors = self._signature is not None and torch.equal(signature[:, 0], self._signature[:, 0])
+        # Densification appends grown anchors and drops pruned ones, so it changes the level column; were
+        # that column ever unchanged by it, the drift path below would still be exact, only slower.
         if not same_anchors:  # first call, or densification changed the anchors
             self._build(levels, positions, signature)
         elif not torch.equal(signature, self._signature):
