@@ -9,7 +9,11 @@ import numpy as np
 import pycolmap
 import pytest
 
+from PIL import Image
+
 from hico_plugin.cli.process import main as process_main
+from hico_plugin.data import images as image_io
+from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.process.align import aligned_errors, umeyama
 from hico_plugin.process.video import extract_frames, sharpness
@@ -73,8 +77,112 @@ def test_images_register_write_the_dataset_and_resume(photos, tmp_path):
         half = cv2.imread(str(out / "images_2" / name))
         assert undistorted is not None and half.shape[0] == -(-undistorted.shape[0] // 2)
     again = process_main(["images", str(folder), "--output", str(out), *FAST])
-    assert set(again["reused_stages"]) == {"copy", "features", "matching", "mapping", "undistort", "downscale"}
+    assert set(again["reused_stages"]) == {"ingest", "features", "matching", "mapping", "undistort", "downscale"}
     assert _centres(out).keys() == recovered.keys()
+
+
+def _exif(orientation: int = 1, make: str = "", model: str = "") -> bytes:
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    if make:
+        exif[0x010F], exif[0x0110] = make, model
+    return exif.tobytes()
+
+
+# EXIF orientation -> how the stored pixels are turned from the upright view (viewers undo it).
+_STORED_TURN = {3: Image.Transpose.ROTATE_180, 6: Image.Transpose.ROTATE_90, 8: Image.Transpose.ROTATE_270}
+
+
+def _users_folder(folder, target):
+    """City-block's views as a phone folder / download would hold them: turned JPEGs with an EXIF
+    orientation tag, grey, 16-bit and transparent PNGs, a second camera (another size and EXIF model),
+    and an empty, a truncated and a text file named like photos. Returns {name: what was done}."""
+    target.mkdir()
+    kinds = {}
+    names = sorted(p.name for p in folder.iterdir())
+    for index, name in enumerate(names):
+        upright = Image.open(folder / name).convert("RGB")
+        stem = name[:-4]
+        if index in (0, 1, 2, 3, 4, 5):
+            orientation = (6, 3, 8)[index % 3]
+            new = f"{stem}.jpg"
+            upright.transpose(_STORED_TURN[orientation]).save(target / new, quality=95, exif=_exif(orientation, "PhoneCo", "A1"))
+            kinds[new] = f"jpeg, EXIF orientation {orientation}"
+        elif index in (10, 11, 12):
+            upright.convert("L").save(target / name)
+            kinds[name] = "grayscale png"
+        elif index == 13:
+            grey = np.asarray(upright.convert("L"), np.uint16) * 257
+            Image.fromarray(grey).save(target / name)
+            kinds[name] = "16-bit grayscale png"
+        elif index in (20, 21):
+            rgba = upright.convert("RGBA")
+            alpha = np.full((upright.height, upright.width), 255, np.uint8)
+            alpha[:40, :40] = 0
+            rgba.putalpha(Image.fromarray(alpha))
+            rgba.save(target / name)
+            kinds[name] = "png with alpha"
+        elif 30 <= index < 40:
+            new = f"{stem}.jpg"
+            upright.resize((480, 360), Image.Resampling.LANCZOS).save(target / new, quality=95,
+                                                                        exif=_exif(1, "DroneCo", "B2"))
+            kinds[new] = "second camera: 480x360 jpeg, other EXIF model"
+        else:
+            shutil.copy2(folder / name, target / name)
+    (target / "empty.jpg").write_bytes(b"")
+    whole = (target / f"{names[40][:-4]}.jpg")
+    Image.open(folder / names[41]).convert("RGB").save(whole, quality=95)
+    (target / "cut.jpg").write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    whole.unlink()
+    (target / "notes.jpg").write_text("shot list: north facade, then the roofs\n")
+    kinds.update({"empty.jpg": "zero bytes", "cut.jpg": "truncated jpeg", "notes.jpg": "text file named .jpg"})
+    return kinds
+
+
+def test_photos_as_users_hand_them_over(photos, tmp_path):
+    folder, known, spread = photos
+    users = tmp_path / "users"
+    kinds = _users_folder(folder, users)
+    out = tmp_path / "out"
+    summary = process_main(["images", str(users), "--output", str(out), *FAST])
+    assert set(summary["skipped"]) == {"empty.jpg", "cut.jpg", "notes.jpg"}
+    assert "empty file" in summary["skipped"]["empty.jpg"]
+    assert "truncated" in summary["skipped"]["cut.jpg"] and "not an image" in summary["skipped"]["notes.jpg"]
+    # One camera per camera the files name: the turned JPEGs' EXIF (PhoneCo A1), the untagged PNGs,
+    # and the 480x360 DroneCo photos.
+    assert summary["cameras"] == 3
+    assert set(summary["masked"]) == {n for n, k in kinds.items() if "alpha" in k}
+    # Turned photos are written upright (their tag applied), the others' pixels unchanged.
+    for name, kind in kinds.items():
+        if "orientation" in kind:
+            ingested = image_io.read_rgb(out / "colmap" / "input" / name)
+            upright = image_io.read_rgb(folder / f"{name[:-4]}.png")
+            assert ingested.shape == upright.shape
+            assert np.abs(ingested.astype(int) - upright.astype(int)).mean() < 3, name
+    recovered = {name[:-4] + ".png": centre for name, centre in _centres(out).items()}
+    assert len(recovered) >= 0.9 * len(known)
+    errors = _centre_errors(recovered, known, spread)
+    assert np.median(errors) < 0.01, np.median(errors)
+    # The dataset hico-process wrote loads: every image's size agrees with its camera, masks included.
+    dataset = DataSourceConfig(data=out).setup()
+    masked = [i for i, name in enumerate(dataset.image_names) if "alpha" in kinds.get(name, "")]
+    assert masked and all(dataset.mask(i) is not None for i in masked)
+    for i in masked:
+        mask = dataset.mask(i).squeeze().numpy()
+        assert not mask[:30, :30].any() and mask[60:, 60:].all()
+    # A forced single camera cannot hold two sizes: one line before any feature is extracted.
+    with pytest.raises(HicoError, match=r"--camera-mode single: one camera has one image size.*480x360"):
+        process_main(["images", str(users), "--output", str(tmp_path / "single"), *FAST, "--camera-mode", "single"])
+
+
+def test_loaders_read_the_stored_pixels_of_a_turned_photo(tmp_path):
+    """The stored pixel grid (what COLMAP's cameras and the header size checks describe), not the
+    turned one OpenCV shows by default."""
+    stored = np.zeros((30, 50, 3), np.uint8)
+    stored[:, :10] = 255
+    Image.fromarray(stored).save(tmp_path / "turned.jpg", quality=95, exif=_exif(6))
+    assert image_io.read_rgb(tmp_path / "turned.jpg").shape == (30, 50, 3)
+    assert cv2.imread(str(tmp_path / "turned.jpg")).shape == (50, 30, 3)  # what OpenCV does unasked
 
 
 def test_too_few_photos_is_one_clear_error(tmp_path):

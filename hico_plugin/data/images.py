@@ -43,14 +43,21 @@ def decode(path: Path, flags: int, what: str) -> np.ndarray:
     return image
 
 
+# Pixels as stored, the EXIF orientation tag ignored: COLMAP's poses and intrinsics and nerfstudio's
+# loader (PIL without exif_transpose) refer to the stored pixel grid, and so do the header sizes the
+# loaders check. OpenCV would otherwise turn a tagged photo and break its camera (hico-process writes
+# upright copies, so its datasets carry no turning tags).
+_STORED = cv2.IMREAD_IGNORE_ORIENTATION
+
+
 def read_rgb(path: Path, what: str = "image") -> np.ndarray:
-    """uint8 [H, W, 3] RGB (grey and 16-bit files are converted; alpha is dropped)."""
-    return cv2.cvtColor(decode(path, cv2.IMREAD_COLOR, what), cv2.COLOR_BGR2RGB)
+    """uint8 [H, W, 3] RGB of the stored pixels (grey and 16-bit files are converted; alpha is dropped)."""
+    return cv2.cvtColor(decode(path, cv2.IMREAD_COLOR | _STORED, what), cv2.COLOR_BGR2RGB)
 
 
 def read_mask(path: Path) -> np.ndarray:
     """bool [H, W]: True where the (8-bit grey) mask is above half intensity."""
-    return decode(path, cv2.IMREAD_GRAYSCALE, "mask") > 127
+    return decode(path, cv2.IMREAD_GRAYSCALE | _STORED, "mask") > 127
 
 
 def resize(image: np.ndarray, width: int, height: int, nearest: bool = False) -> np.ndarray:

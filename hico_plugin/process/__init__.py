@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ import tyro
 
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
+from hico_plugin.process.ingest import ingest_photos
 from hico_plugin.process.sfm import SfmOptions, list_images, print_summary, run_sfm
 from hico_plugin.process.stages import StageRunner, stage_key, write_json_atomic
 from hico_plugin.process.video import extract_frames
@@ -47,8 +49,17 @@ class ProcessImagesConfig(InstantiateConfig):
         runner = StageRunner(out)
         input_dir = out / "colmap" / "input"
         files = [(name, (source / name).stat().st_size, (source / name).stat().st_mtime_ns) for name in names]
-        runner.run("copy", stage_key(files), lambda report: _copy(source, names, input_dir, report))
-        return _finish(run_sfm(input_dir, names, out, self.sfm, runner, files), out, runner)
+        ingested = runner.run("ingest", stage_key(files), lambda report: ingest_photos(
+            source, names, input_dir, input_dir.parent / "masks", report))
+        skipped = ingested["skipped"]
+        for name, reason in sorted(skipped.items()):
+            print(f"skipped  {name}: {reason}", file=sys.stderr)
+        if len(ingested["kept"]) < 3:
+            raise HicoError(f"{source}: {len(ingested['kept'])} of {len(names)} files are usable photos "
+                            f"(expected at least 3; {len(skipped)} skipped, listed above)")
+        summary = run_sfm(input_dir, ingested["kept"], out, self.sfm, runner, files)
+        summary.update(skipped=skipped, rewritten=ingested["rewritten"], masked=ingested["masked"])
+        return _finish(summary, out, runner)
 
 
 @dataclass
@@ -81,15 +92,6 @@ class ProcessVideoConfig(InstantiateConfig):
         summary = run_sfm(input_dir, names, out, self.sfm, runner, key)
         summary.update(frame_summary)
         return _finish(summary, out, runner)
-
-
-def _copy(source: Path, names: list[str], target: Path, report) -> None:
-    if target.exists():
-        shutil.rmtree(target)
-    for done, name in enumerate(names, start=1):
-        (target / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(source / name, target / name)
-        report(done, len(names))
 
 
 def _finish(summary: dict[str, Any], out: Path, runner: StageRunner) -> dict[str, Any]:

@@ -23,11 +23,12 @@ import pycolmap
 
 from hico_plugin.data import images as image_io
 from hico_plugin.errors import HicoError
+from hico_plugin.process.ingest import photo_info
 from hico_plugin.process.stages import Report, StageRunner, stage_key
 
 Matcher = Literal["exhaustive", "sequential", "spatial"]
 Mapper = Literal["incremental", "global", "hierarchical"]
-CameraMode = Literal["single", "per-folder", "per-image"]
+CameraMode = Literal["auto", "single", "per-folder", "per-image"]
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 
 
@@ -47,8 +48,9 @@ class SfmOptions:
     camera_params: str = ""
     """Known intrinsics as COLMAP lists them for --camera-model (e.g. PINHOLE: "fx,fy,cx,cy"); empty =
     estimated, starting from the EXIF focal length (or 1.2 x the image size without EXIF)."""
-    camera_mode: CameraMode = "single"
-    """single: one camera for all photos; per-folder: one per sub-folder; per-image: one each."""
+    camera_mode: CameraMode = "auto"
+    """auto: one camera per distinct camera the photos' sizes and EXIF (make, model, focal length) name;
+    single: one camera for all photos; per-folder: one per sub-folder; per-image: one each."""
     max_features: int = 8192
     """SIFT features per image."""
     max_image_size: int = 3200
@@ -80,38 +82,71 @@ def run_sfm(input_dir: Path, names: list[str], out: Path, options: SfmOptions, r
         raise HicoError(f"--camera-model: unknown COLMAP model {options.camera_model!r}; expected one of {known}")
     work = out / "colmap"
     database = work / "database.db"
+    masks = input_dir.parent / "masks"  # where ingest_photos put the photos' transparency, if any
+    cameras = camera_groups(input_dir, names, options.camera_mode)
     pycolmap.logging.minloglevel = 2  # COLMAP's INFO/WARNING lines would drown the progress bars
     key = stage_key(input_key, options.camera_model, options.camera_params, options.camera_mode, options.max_features,
                     options.max_image_size)
-    runner.run("features", key, lambda report: _extract(database, input_dir, names, options, report))
+    runner.run("features", key, lambda report: _extract(database, input_dir, cameras, masks, options, report))
     key = stage_key(key, options.matcher)
     runner.run("matching", key, lambda report: _match(database, options))
     key = stage_key(key, options.mapper, options.seed)
     mapped = runner.run("mapping", key, lambda report: _map(database, input_dir, work / "sparse", options, report))
     model_dir = work / "sparse" / str(mapped["model"])
-    runner.run("undistort", key, lambda report: _undistort(model_dir, input_dir, out, report))
+    runner.run("undistort", key, lambda report: _undistort(model_dir, input_dir, masks, out, report))
     key = stage_key(key, list(options.downscales))
     runner.run("downscale", key, lambda report: _downscale(out, options.downscales, report))
     return _summary(database, names, pycolmap.Reconstruction(str(model_dir)), options)
 
 
-def _extract(database: Path, input_dir: Path, names: list[str], options: SfmOptions, report: Report) -> None:
+def camera_groups(input_dir: Path, names: list[str], mode: CameraMode) -> list[list[str]]:
+    """The photos each COLMAP camera holds: one group per distinct (size, EXIF make, model, focal
+    length) for ``auto``, else as ``mode`` says. A forced mode whose camera would hold photos of
+    different sizes is refused here, before any feature is extracted (a camera has one size)."""
+    infos = {name: photo_info(input_dir / name) for name in names}
+    if mode == "per-image":
+        return [[name] for name in names]
+    groups: dict[Any, list[str]] = {}
+    for name in names:
+        key = {"auto": infos[name].camera_key(), "single": None, "per-folder": str(Path(name).parent)}[mode]
+        groups.setdefault(key, []).append(name)
+    if mode != "auto":
+        for group in groups.values():
+            sizes: dict[tuple[int, int], list[str]] = {}
+            for name in group:
+                sizes.setdefault((infos[name].width, infos[name].height), []).append(name)
+            if len(sizes) > 1:
+                listed = "; ".join(f"{w}x{h}: {len(n)} photo(s), e.g. {n[0]}" for (w, h), n in sorted(sizes.items()))
+                raise HicoError(f"--camera-mode {mode}: one camera has one image size, but its photos have "
+                                f"{len(sizes)} ({listed}); use --camera-mode auto (one camera per size and EXIF "
+                                "camera) or per-image")
+    return list(groups.values())
+
+
+def _extract(database: Path, input_dir: Path, cameras: list[list[str]], masks: Path, options: SfmOptions,
+             report: Report) -> dict[str, Any]:
     database.parent.mkdir(parents=True, exist_ok=True)
     database.unlink(missing_ok=True)  # a half-written database from a crash is not resumable
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
     reader.camera_params = options.camera_params
+    if masks.is_dir():
+        reader.mask_path = str(masks)  # no features where a photo was transparent
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.max_image_size = options.max_image_size
     extraction.sift.max_num_features = options.max_features
-    mode = {"single": pycolmap.CameraMode.SINGLE, "per-folder": pycolmap.CameraMode.PER_FOLDER,
-            "per-image": pycolmap.CameraMode.PER_IMAGE}[options.camera_mode]
-    # pycolmap reports no per-image progress; the bar shows the stage running and its elapsed time
-    report(0, len(names))
-    pycolmap.extract_features(database, input_dir, image_names=names, camera_mode=mode, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
-    report(len(names), len(names))
+    total = sum(len(group) for group in cameras)
+    done = 0
+    # pycolmap reports no per-image progress; the bar advances by camera. Each call adds one camera
+    # that holds its group's photos.
+    report(done, total)
+    for group in cameras:
+        pycolmap.extract_features(database, input_dir, image_names=group, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        done += len(group)
+        report(done, total)
+    return {"cameras": len(cameras)}
 
 
 def _match(database: Path, options: SfmOptions) -> None:
@@ -177,23 +212,57 @@ def _map(database: Path, input_dir: Path, sparse: Path, options: SfmOptions, rep
     return {"model": int(best), "models": len(models)}
 
 
-def _undistort(model_dir: Path, input_dir: Path, out: Path, report: Report) -> None:
+def _undistort(model_dir: Path, input_dir: Path, masks: Path, out: Path, report: Report) -> None:
     """Undistort the registered images to PINHOLE (COLMAP's image undistorter) into out/images and
-    out/sparse/0 (via a temporary folder, so a crash leaves no half-written dataset behind)."""
+    out/sparse/0, and the photos' transparency masks alike into out/masks (via temporary folders, so a
+    crash leaves no half-written dataset behind)."""
     staging = out / "colmap" / "undistorted"
-    if staging.exists():
-        shutil.rmtree(staging)
+    for folder in (staging, staging.with_name("undistorted_masks")):
+        if folder.exists():
+            shutil.rmtree(folder)
     reconstruction = pycolmap.Reconstruction(str(model_dir))
     report(0, reconstruction.num_reg_images())
     pycolmap.undistort_images(staging, model_dir, input_dir, output_type="COLMAP")
-    for name in ("images", "sparse"):
+    masks_out = _undistort_masks(reconstruction, model_dir, masks, staging.with_name("undistorted_masks"))
+    for name in ("images", "sparse", "masks"):
         if (out / name).exists():
             shutil.rmtree(out / name)
     (staging / "images").rename(out / "images")
     (out / "sparse").mkdir()
     (staging / "sparse").rename(out / "sparse" / "0")
+    if masks_out is not None:
+        masks_out.rename(out / "masks")
+        shutil.rmtree(masks_out.parent)
     shutil.rmtree(staging)
     report(reconstruction.num_reg_images(), reconstruction.num_reg_images())
+
+
+def _undistort_masks(reconstruction: pycolmap.Reconstruction, model_dir: Path, masks: Path, staging: Path) -> Path | None:
+    """The masks (white = scene, nerfstudio's masks/<name>.png) of the undistorted images when any photo
+    had transparency (then every photo has one): each goes through the same undistortion as its image,
+    then back to black and white at half intensity."""
+    if not masks.is_dir():
+        return None
+    names = [image.name for image in reconstruction.images.values() if image.has_pose]
+    source = staging / "input"
+    for name in names:
+        mask = image_io.decode(masks / f"{name}.png", cv2.IMREAD_GRAYSCALE, "mask")
+        target = source / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        # Under the image's name and format (the undistorter reads by name); JPEG's loss on a black
+        # and white image is undone by the threshold below.
+        ok, encoded = cv2.imencode(Path(name).suffix.lower(), mask)
+        if not ok:
+            raise HicoError(f"{target}: mask cannot be encoded")
+        target.write_bytes(encoded.tobytes())
+    pycolmap.undistort_images(staging / "out", model_dir, source, output_type="COLMAP")
+    result = staging / "masks"
+    for name in names:
+        warped = image_io.decode(staging / "out" / "images" / name, cv2.IMREAD_GRAYSCALE, "undistorted mask")
+        target = result / Path(name).with_suffix(".png")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(target), np.where(warped > 127, 255, 0).astype(np.uint8))
+    return result
 
 
 def _downscale(out: Path, factors: tuple[int, ...], report: Report) -> None:
@@ -257,6 +326,9 @@ def print_summary(summary: dict[str, Any], out: Path, timings: dict[str, float],
          f"{summary['mapper']} mapping)")
     for name, reason in sorted(summary["dropped"].items()):
         echo(f"  dropped  {name}: {reason}")
+    if summary.get("rewritten"):
+        echo(f"normalised {len(summary['rewritten'])} photo(s) on the way in (upright, 8-bit RGB; "
+             f"{len(summary.get('masked', []))} with a transparency mask in masks/)")
     echo(f"points3D   {summary['points3D']} (mean track length {summary['mean_track_length']:.2f}, "
          f"mean reprojection error {summary['mean_reprojection_error_px']:.3f} px)")
     stages = ", ".join(f"{name} {seconds:.1f} s" for name, seconds in timings.items())
