@@ -65,8 +65,10 @@ def _worker(rank: int, world_size: int, port: int, output_dir: str, results_dir:
         assert resumed.step == 7
         resumed.train()
         torch.save(resumed.model.state_dict(), Path(results_dir) / f"rank{rank}.pt")
-    finally:
-        dist_utils.shutdown()
+    except BaseException:
+        dist_utils.shutdown(wait_for_peers=False)
+        raise
+    dist_utils.shutdown()
 
 
 def test_helpers_are_no_ops_on_one_process():

@@ -14,6 +14,7 @@ from typing import Sequence
 import tyro
 
 from hico_plugin.cli import run_cli
+from hico_plugin.engine import distributed as dist_utils
 from hico_plugin.engine.run_dir import run_directory
 from hico_plugin.engine.stopping import EXIT_INTERRUPTED
 from hico_plugin.presets import HiCoTrainerConfig, all_presets
@@ -52,17 +53,22 @@ def parse(args: Sequence[str]) -> HiCoTrainerConfig:
 
 
 def train(config: HiCoTrainerConfig) -> None:
-    trainer = config.setup()
-    viewer = None
-    if trainer.is_main and config.wants_viewer():
-        from hico_plugin.viewer.viewer import attach_viewer
-
-        viewer = attach_viewer(trainer, config.viewer)
+    finished = False
     try:
-        result = trainer.train()
+        trainer = config.setup()
+        viewer = None
+        if trainer.is_main and config.wants_viewer():
+            from hico_plugin.viewer.viewer import attach_viewer
+
+            viewer = attach_viewer(trainer, config.viewer)
+        try:
+            result = trainer.train()
+        finally:
+            if viewer is not None:
+                viewer.stop()
+        finished = True
     finally:
-        if viewer is not None:
-            viewer.stop()
+        dist_utils.shutdown(wait_for_peers=finished)  # under torchrun; nothing on one process
     if trainer.is_main and result.eval_results is not None:
         summary = ", ".join(f"{k} {v:.4g}" for k, v in result.eval_results.items() if isinstance(v, float))
         print(f"eval: {summary}")

@@ -143,6 +143,14 @@ def barrier() -> None:
         dist.barrier()
 
 
-def shutdown() -> None:
+def shutdown(wait_for_peers: bool = True) -> None:
+    """Leave the process group before the process exits. With ``wait_for_peers`` (a run that ended
+    normally) every rank first meets the others at a barrier, so no rank shuts its gloo connections
+    while a peer still uses them (rank 0 evaluates after the others' last collective); a process that
+    exits still holding its group has gloo's threads torn down during interpreter shutdown, which aborts
+    it (SIGABRT, "terminate called without an active exception"). After a failure a peer may never
+    arrive, so the group is left without waiting."""
     if dist.is_available() and dist.is_initialized():
+        if wait_for_peers and dist.get_world_size() > 1:
+            dist.barrier()
         dist.destroy_process_group()
