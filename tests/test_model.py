@@ -111,3 +111,23 @@ def test_viewer_lod_controls(tiny):
     assert levels[far].max() < levels[near].max()  # a larger distance scale picks coarser levels
     _, gaussians = model.render(camera, {"rgb"}, level_range=(0, 0))
     assert (levels[gaussians.anchor_ids] == 0).all()
+
+
+def test_masked_pixels_teach_nothing(tiny):
+    """A photo's mask (white = scene; transparency from hico-process) leaves the pixels outside it out of
+    the photometric loss: no loss and no gradient from them."""
+    model = _config().setup(dataset=tiny, total_steps=300)
+    batch = _batch(tiny)
+    height, width = batch.images.shape[1:3]
+    half = torch.zeros(1, height, width, 1, dtype=torch.bool)
+    half[:, :, : width // 2] = True
+    outputs = {}
+    for name, mask in (("none", None), ("all", torch.ones_like(half)), ("half", half), ("empty", torch.zeros_like(half))):
+        masked = dataclasses.replace(batch, gt={} if mask is None else {"mask": mask})
+        model.zero_grad()
+        step = model.train_step(masked, 0)
+        step.loss.backward()
+        outputs[name] = (float(step.metrics["loss/rgb_l1"]), model.field.anchor_features.grad.abs().sum().item())
+    assert outputs["all"] == pytest.approx(outputs["none"])
+    assert outputs["empty"] == (0.0, 0.0)
+    assert 0 < outputs["half"][0] < outputs["none"][0]

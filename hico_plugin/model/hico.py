@@ -14,6 +14,7 @@ ever allocated.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field as dataclass_field
 from typing import Any
@@ -224,10 +225,15 @@ class HiCoModel(nn.Module):
         term_sums: dict[str, float] = {}
         views = []
         psnrs = []
-        for camera, image in zip(batch.cameras, batch.images):
+        masks = batch.gt.get("mask")
+        for i, (camera, image) in enumerate(zip(batch.cameras, batch.images)):
             out, gaussians = self.render(camera, wanted, step)
             if out.means2d is not None and out.means2d.requires_grad:
                 out.means2d.retain_grad()
+            if masks is not None:  # pixels outside the photo's mask teach nothing (splatfacto's rule)
+                keep = masks[i].to(image.dtype)
+                image = image * keep
+                out = dataclasses.replace(out, rgb=out.rgb * keep)
             terms = self.losses(out, image, step)
             view_loss = sum(terms.values())
             total = view_loss if total is None else total + view_loss
