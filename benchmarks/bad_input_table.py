@@ -1,4 +1,4 @@
-"""Re-runs the bad-input table of issue 13: each case as a user would meet it, printing the exit code,
+"""Re-runs the bad-input table: each case as a user would meet it, printing the exit code,
 the last stderr line and the time to fail. ``python benchmarks/bad_input_table.py [WORKDIR]``.
 
 Trains one tiny run first (hico-gs-lite on the built-in tiny scene, 4 steps) for the run cases.

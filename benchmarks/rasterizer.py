@@ -1,4 +1,4 @@
-"""Rasterizer benchmark (issue 2 section 4): time and peak memory of the torch backend.
+"""Rasterizer benchmark: time and peak memory of the torch backend.
 
 Each case runs in its own subprocess so that its peak RSS (ru_maxrss) is its own. Prints a table of
 forward and forward+backward medians over --reps runs after one warm-up, for rgb alone and for rgb

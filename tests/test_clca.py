@@ -153,7 +153,7 @@ def test_built_levels_nest_under_trilinear_but_not_under_the_paper_rule():
     paper = lookup(features, levels, positions, "paper")
     fine = levels > 0
     assert trilinear.parent_found[fine].all()
-    assert paper.parent_found[fine].float().mean() < 0.9  # the gap issue 19 measured
+    assert paper.parent_found[fine].float().mean() < 0.9  # the literal rule misses many parents
     # A child is found by the coarser anchor for every finer one: each child has >= 1 parent.
     assert int(trilinear.child_pooled[levels < GRID.num_levels - 1].sum()) >= int(fine.sum())
 

@@ -1,4 +1,4 @@
-"""Extrapolation split and sparse views (issue 19) on the built-in city-block orbits and by hand."""
+"""Extrapolation split and sparse views on the built-in city-block orbits and by hand."""
 
 import numpy as np
 import pytest

@@ -29,7 +29,7 @@ K = torch.tensor([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]], dtype=to
 def plane_render(plane_normal, plane_distance: float):
     """Exact render outputs of an opaque plane n . X = -d (n unit, facing the camera) seen through K.
 
-    n_d is computed the way algorithm_spec.md section 6 defines it (back-projection with integer pixel
+    n_d is computed as the paper's Sec. 3.1 describes it (back-projection with integer pixel
     coordinates, central differences, a x b, zero border), independently of the loss code.
     """
     n = torch.tensor(plane_normal, dtype=torch.float64)

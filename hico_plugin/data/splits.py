@@ -1,4 +1,4 @@
-"""Train / test splits beyond every-Nth: an extrapolation split and sparse training views (issue 19).
+"""Train / test splits beyond every-Nth: an extrapolation split and sparse training views.
 
 ``extrapolation_split`` holds out the views at one end of the cameras' principal axis and leaves a gap
 of unused views, so that every test camera is farther from the nearest training camera than any

@@ -36,7 +36,7 @@ from hico_plugin.errors import HicoError
 _DATACLASS_TAG = "!dataclass:"
 _ENUM_TAG = "!enum:"
 # Config classes that became plain mappings; config.yml files of runs trained before still load.
-_NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses: {name: LossConfig} since issue 16
+_NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a {name: LossConfig} mapping
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
 # field gets the value that reproduces the run (its scene frame was not rotated; its anchors were not
 # kept nested), not today's default.
@@ -163,11 +163,6 @@ _ConfigLoader.add_multi_constructor(_DATACLASS_TAG, _construct_dataclass)
 _ConfigLoader.add_multi_constructor(_ENUM_TAG, _construct_enum)
 _ConfigLoader.add_constructor("!path", lambda loader, node: Path(loader.construct_scalar(node)))
 _ConfigLoader.add_constructor("!tuple", lambda loader, node: tuple(loader.construct_sequence(node, deep=True)))
-
-
-def config_to_yaml(config: Any) -> str:
-    """The YAML text of a config dataclass tree."""
-    return yaml.dump(config, Dumper=_ConfigDumper, sort_keys=False, default_flow_style=False)
 
 
 class _AbsoluteDumper(_ConfigDumper):

@@ -2,7 +2,7 @@
 
     index = ContextIndex(grid, "trilinear")               # one per field, kept across steps
     graph = index.view(levels, positions, visible_ids)    # one view's visible anchors
-    pooled = graph.pool_cells(features)                   # c_self per cell, etc. (context.py)
+    fused = aggregator(features, graph)                  # features + CLCA(c_self, c_parent, c_child) (context.py)
 
 The relation depends only on each anchor's level and grid cell, which change when densification adds
 or prunes anchors or an anchor drifts into another cell. ``ContextIndex`` builds it over all anchors

@@ -1,4 +1,5 @@
-"""Neural Gaussian decoder (algorithm_spec.md §3): K Gaussians per visible anchor from shared MLPs."""
+"""Neural Gaussian decoder (Scaffold-GS / Octree-GS, paper Sec. 3.1): K Gaussians per visible anchor from
+shared MLPs conditioned on the anchor feature and the view."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Level-aware anchor growing and pruning (algorithm_spec.md §4), as pure tensor functions.
+"""Level-aware anchor growing and pruning (Octree-GS's densification), as pure tensor functions.
 
 The field (field.py) owns the statistics buffers and applies the results; these functions only decide
 which offsets spawn which new anchors and which anchors are pruned.

@@ -1,4 +1,4 @@
-"""How CLCA's lookup fares per octree level, over the visible anchors of a set of views (issue 19).
+"""How CLCA's lookup fares per octree level, over the visible anchors of a set of views.
 
     table = lookup_table(field, cameras)        # [{level, visible, parent_found, ...}, ...]
 

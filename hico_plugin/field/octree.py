@@ -1,6 +1,6 @@
 """The anchor octree: level count and voxel sizes from the cameras, per-level voxelisation, weed-out.
 
-Grid convention (the base method's, algorithm_spec.md §1): level 0 is the coarsest; level ``l`` has
+Grid convention (Octree-GS's, the base method of paper Sec. 3.1): level 0 is the coarsest; level ``l`` has
 voxel size ``v_l = voxel_size / fork**l``; a point ``x`` maps to the integer grid index
 ``k = round((x - origin) / v_l)`` and the anchor sits on the grid point ``origin + k * v_l``, which is
 the centre of the voxel ``[k - 1/2, k + 1/2) * v_l``. So the paper's ``g_i^l = round((p_i - o) / v_l)``

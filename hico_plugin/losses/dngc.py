@@ -2,7 +2,7 @@
 
     L = ... + w(t) (lambda_nc L_nc + lambda_ns L_ns + lambda_ds L_ds),   w(t) = clamp((t - t0) / T, 0, 1)
 
-Readings taken where the paper is silent (algorithm_spec.md section 10):
+Readings taken where the paper is silent:
 - alpha in the L_nc weight and the rendered RGB in the edge weights are detached: otherwise the loss
   could be lowered by making pixels transparent or by sharpening image edges instead of fixing geometry.
 - |grad I| is the per-channel absolute forward difference averaged over RGB (an edge between two

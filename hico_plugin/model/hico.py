@@ -45,7 +45,7 @@ EVAL_OUTPUTS = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "d
 
 
 def default_optimizers() -> dict[str, ParamGroupOptimizerConfig]:
-    """Adam schedule per parameter group (CityGS-X, algorithm_spec.md §5.2); decays run over max_steps."""
+    """Adam schedule per parameter group (CityGS-X's settings, paper Sec. 4.1); decays run over max_steps."""
     lr = ParamGroupOptimizerConfig
     return {
         "anchor": lr(1.6e-4, 1.6e-6, scale_by_extent=True),
@@ -123,7 +123,6 @@ class HiCoModel(nn.Module):
         self.colour = (AffineColour(len(train_ids), self._measured_gains(train_ids)) if "exposure" in on
                        else None)
         self.last_num_gaussians = 0
-        self.context_enabled = True  # the viewer's CLCA toggle; training always uses the config
 
     def _measured_gains(self, train_ids: Tensor) -> Tensor | None:
         """[C,3] log2 gains of the training photos from the data analysis (None when exposure was
@@ -290,7 +289,7 @@ class HiCoModel(nn.Module):
             err = _or_none(lambda: normal_angular_error(out.normal, gt["normal"].to(rgb)))
             results["normal_error_deg"] = None if err is None else err.mean_deg
             results["normal_error_median_deg"] = None if err is None else err.median_deg
-        # How CLCA's lookup fares on this view, per level (issue 19); averaged over views by evaluate().
+        # How CLCA's lookup fares on this view, per level; averaged over views by evaluate().
         results.update(flat_metrics(summarise(view_lookup_sums(self.field, camera))))
         results["images"] = {"rgb": rgb, "gt": image}
         return results

@@ -1,4 +1,4 @@
-"""The "CLCA parent found" anchor overlay (issue 19): which anchors CLCA finds a parent context for.
+"""The "CLCA parent found" anchor overlay: which anchors CLCA finds a parent context for.
 
 A model may offer ``viewer_parent_found() -> Tensor [A] bool`` (every anchor counted as visible);
 the viewer then colours the anchor cloud by it instead of by level when the overlay is switched on.
