@@ -57,9 +57,8 @@ def load_run(config_path: str | Path, checkpoint: str | Path | None = None, devi
     else:
         path, payload = _newest(config_path, config.output_dir)
     seed_everything(config.seed)
-    dataset = config.build_dataset()
-    check_frame(payload, dataset_frame(dataset), path)  # before the model's (slow) analysis of the data
-    model = config.build_model(dataset, resolve_device(device or config.device))
+    model, dataset = config.build(resolve_device(device or config.device))
+    check_frame(payload, dataset_frame(dataset), path)
     restore_model(model, payload, path)
     if isinstance(model, nn.Module):
         model.eval()

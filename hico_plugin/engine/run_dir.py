@@ -86,23 +86,6 @@ class RunLock:
             self._stream = None
 
 
-def free_bytes(folder: Path) -> int:
-    """Free bytes on the file system of ``folder`` for an unprivileged writer."""
-    return shutil.disk_usage(folder).free
-
-
-def check_free_space(run_dir: Path, min_free_gb: float) -> None:
-    """Refuse a run whose folder's disk has less than ``min_free_gb`` GiB free (0: no check), so a
-    full disk is found before training, not by a checkpoint write hours into it."""
-    if min_free_gb <= 0:
-        return
-    free = free_bytes(run_dir)
-    if free < min_free_gb * 2**30:
-        raise HicoError(f"{run_dir}: {free / 2**30:.2f} GiB free on its disk, expected at least {min_free_gb:g} "
-                        "GiB for checkpoints and outputs; free space, choose another --output-dir, or lower "
-                        "--min-free-gb")
-
-
 def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool, is_main: bool) -> Path | None:
     """The checkpoint a run starts from (the same on every rank), or None for a fresh run.
 

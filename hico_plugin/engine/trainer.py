@@ -44,7 +44,6 @@ from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import TrainableModel, TrainDataset
 from hico_plugin.engine.run_dir import (
     RunLock,
-    check_free_space,
     start_checkpoint,
     trim_metrics,
     write_run_files,
@@ -106,14 +105,10 @@ class TrainerConfig(InstantiateConfig):
     """Stop the run after this many non-finite losses in a row (each such step is skipped)."""
     distributed_timeout_minutes: float = 30.0
     """Under torchrun: how long a worker waits for the others at a collective before failing."""
-    min_free_gb: float = 1.0
-    """Refuse to start when the disk of output_dir has less free space than this (GiB; 0: no check). A
-    run keeps keep_checkpoints checkpoints (about 1 KB per anchor each: 70k anchors, 70 MB) and writes
-    one more beside them before the oldest goes; a run that fills the disk loses its newest work."""
 
     def validate(self) -> None:
         """A HicoError naming the first field out of range."""
-        for name in ("max_steps", "eval_every", "save_every", "keep_checkpoints", "min_free_gb"):
+        for name in ("max_steps", "eval_every", "save_every", "keep_checkpoints"):
             if getattr(self, name) < 0:
                 raise HicoError(f"config.{name}: expected >= 0, got {getattr(self, name)}")
         for name in ("batch_size", "log_every", "max_nonfinite_steps"):
@@ -126,19 +121,16 @@ class TrainerConfig(InstantiateConfig):
     def wants_tensorboard(self) -> bool:
         return "tensorboard" in self.vis
 
-    def build_dataset(self) -> TrainDataset:
-        """The dataset this config describes (its cameras and files; what a checkpoint's frame is
-        checked against before the model is built)."""
+    def build(self, device: torch.device) -> tuple[TrainableModel, TrainDataset]:
+        """The model (on ``device``) and dataset this config describes."""
         if self.data is None or self.model is None:
             raise HicoError("config: 'data' and 'model' must be set to build a run")
-        return self.data.setup()
-
-    def build_model(self, dataset: TrainDataset, device: torch.device) -> TrainableModel:
-        """The model for ``dataset`` on ``device`` (the slow part: what it derives from the data)."""
-        return self.model.setup(dataset=dataset).to(device)
+        dataset = self.data.setup()
+        model = self.model.setup(dataset=dataset)
+        return model.to(device), dataset
 
     def setup(self, **kwargs: Any) -> "Trainer":
-        """The Trainer of this run; ``model=`` / ``dataset=`` / ``callbacks=`` override what the config builds."""
+        """The Trainer of this run; ``model=`` / ``dataset=`` / ``callbacks=`` override ``build``."""
         return Trainer(self, **kwargs)
 
 
@@ -180,6 +172,15 @@ class Trainer:
         self.distributed = dist_utils.init_distributed(self.device, config.distributed_timeout_minutes)
         self.rank = dist_utils.get_rank()
         self.world_size = dist_utils.get_world_size()
+        seed_everything(config.seed)
+        if model is None or dataset is None:
+            built_model, built_dataset = config.build(self.device)
+            model = built_model if model is None else model
+            dataset = built_dataset if dataset is None else dataset
+        self.model = model.to(self.device) if isinstance(model, nn.Module) else model
+        self.dataset = dataset
+        self.train_indices = [int(i) for i in dataset.train_indices]
+        self.test_indices = [int(i) for i in dataset.test_indices]
         self.run_dir = Path(config.output_dir)
         self.checkpoint_dir = self.run_dir / "checkpoints"
         self.callbacks: list[TrainerCallback] = []
@@ -191,26 +192,11 @@ class Trainer:
         self.last_eval: dict[str, Any] | None = None
         self.lock = threading.RLock()
         self.controls = TrainerControls(self.device)
-        # Everything that can refuse the run comes before the dataset and the model are built (the
-        # model's analysis of the data takes minutes on hundreds of photos): the lock, free space,
-        # the start checkpoint, and that checkpoint's frame against the dataset's cameras.
         self.run_lock = RunLock(self.run_dir)
         if self.is_main:
             self.run_lock.acquire()
         try:
-            if self.is_main:
-                check_free_space(self.run_dir, config.min_free_gb)
-            latest = start_checkpoint(self.run_dir, config.resume, config.overwrite, self.is_main)
-            payload = load_checkpoint(latest) if latest is not None else None
-            seed_everything(config.seed)
-            self.dataset = dataset if dataset is not None else config.build_dataset()
-            if payload is not None:
-                check_frame(payload, dataset_frame(self.dataset), latest)
-            model = model if model is not None else config.build_model(self.dataset, self.device)
-            self.model = model.to(self.device) if isinstance(model, nn.Module) else model
-            self.train_indices = [int(i) for i in self.dataset.train_indices]
-            self.test_indices = [int(i) for i in self.dataset.test_indices]
-            self._start_run(latest, payload)
+            self._start_run()
             if self.is_main:
                 self.callbacks += default_callbacks(self.run_dir, config.max_steps, config.log_every,
                                                     config.progress, config.wants_tensorboard())
@@ -251,9 +237,10 @@ class Trainer:
             self.callbacks.append(callback)
 
     # ----------------------------------------------------------------- start, checkpoints
-    def _start_run(self, latest: Path | None, payload: dict[str, Any] | None) -> None:
+    def _start_run(self) -> None:
+        latest = start_checkpoint(self.run_dir, self.config.resume, self.config.overwrite, self.is_main)
         if latest is not None:
-            self._restore(payload, latest)
+            self.load_checkpoint(latest)
             if self.is_main:
                 trim_metrics(self.run_dir / "metrics.jsonl", self.step)
         else:
@@ -266,8 +253,10 @@ class Trainer:
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))
 
-    def _restore(self, payload: dict[str, Any], path: Path) -> None:
-        """Model, optimizers, step, train time and RNG states from the checkpoint ``payload`` of ``path``."""
+    def load_checkpoint(self, path: Path) -> None:
+        """Restore model, optimizers, step, train time and RNG states from ``path``."""
+        payload = load_checkpoint(Path(path))
+        check_frame(payload, dataset_frame(self.dataset), Path(path))
         restore_model(self.model, payload, Path(path))
         self.optimizers = self._make_optimizers()  # after loading: the model may hold new Parameters
         self.optimizers.load_state_dict(payload["optimizers"])
