@@ -93,25 +93,26 @@ class DataParserConfig(InstantiateConfig):
         self.test_list = Path(self.test_list) if self.test_list is not None else None
         self.test_names = tuple(self.test_names)
 
-    def setup(self, **kwargs: Any) -> Dataset:
-        return self.parse()
+    def setup(self, announce: bool = True, **kwargs: Any) -> Dataset:
+        return self.parse(announce)
 
-    def parse(self) -> Dataset:
-        """Read, check and normalise the dataset; images stay on disk until first used."""
+    def parse(self, announce: bool = True) -> Dataset:
+        """Read, check and normalise the dataset; images stay on disk until first used. The notes the
+        reading made (frames skipped, the automatic downscale, ...) are printed when ``announce``, and kept
+        in ``Dataset.notes`` either way: a trainer prints them only once every refusal is behind it."""
         data_dir = self.data
         if not data_dir.is_dir():
             raise HicoError(f"data directory {data_dir}: not found (expected a dataset folder, e.g. images/ + sparse/0)")
         if self.downscale < 0:
             raise HicoError(f"--downscale: expected 0 (auto) or a whole number >= 1, got {self.downscale}")
         record = (self.format or detect_format(data_dir)).read(data_dir)
-        for note in record.notes:
-            print(note, file=sys.stderr)
+        notes = list(record.notes)
         missing = [str(path) for path in record.image_paths if not path.is_file()]
         if missing:
             raise HicoError(
                 f"{missing[0]}: image listed in the dataset but not on disk ({len(missing)} of {len(record.image_paths)} missing)"
             )
-        downscale = self.downscale or self._auto_downscale(record)
+        downscale = self.downscale or self._auto_downscale(record, notes)
         image_paths = [self._downscaled_path(path, downscale) for path in record.image_paths]
         train_indices, test_indices = self._split(record.names, record.test_names)
         if self.split == "extrapolate":
@@ -141,7 +142,7 @@ class DataParserConfig(InstantiateConfig):
             widths=torch.tensor([camera.width for camera in pinholes], dtype=torch.int64),
             heights=torch.tensor([camera.height for camera in pinholes], dtype=torch.int64),
         )
-        return Dataset(
+        dataset = Dataset(
             data_dir=data_dir,
             image_names=record.names,
             image_paths=image_paths,
@@ -161,16 +162,21 @@ class DataParserConfig(InstantiateConfig):
             metadata=self._metadata(),
             tracks=record.tracks,
             depth_paths=record.depth_paths,
+            notes=notes,
         )
+        if announce:
+            for note in notes:
+                print(note, file=sys.stderr)
+        return dataset
 
-    def _auto_downscale(self, record: SceneRecord) -> int:
+    def _auto_downscale(self, record: SceneRecord, notes: list[str]) -> int:
         long_side = max(max(camera.width, camera.height) for camera in record.cameras.values())
         factor = 1
         while long_side / factor > self.max_long_side:
             factor *= 2
         if factor > 1:
-            print(f"downscale: images have a {long_side} px long side; loading at 1/{factor} "
-                  f"(--max-long-side {self.max_long_side}; --downscale 1 keeps full resolution)", file=sys.stderr)
+            notes.append(f"downscale: images have a {long_side} px long side; loading at 1/{factor} "
+                         f"(--max-long-side {self.max_long_side}; --downscale 1 keeps full resolution)")
         return factor
 
     def _downscaled_path(self, path: Path, factor: int) -> Path:
