@@ -127,3 +127,22 @@ def test_free_bytes_reads_the_nearest_existing_folder(tmp_path):
     import shutil
 
     assert abs(disk_space.free_bytes(tmp_path / "not" / "yet") - shutil.disk_usage(tmp_path).free) < 2**30
+
+
+def test_the_datasets_notes_are_printed_once_the_checks_pass(large_colmap_dataset, tmp_path, capfd, monkeypatch):
+    from hico_plugin.model.hico import HiCoModelConfig
+
+    class ModelSetup(Exception):
+        pass
+
+    def setup(self, **kwargs):
+        out, err = capfd.readouterr()
+        assert out == "" and err.splitlines() == [
+            "downscale: images have a 1600 px long side; loading at 1/2 (--max-long-side 800; --downscale 1 keeps "
+            "full resolution)"]
+        raise ModelSetup
+
+    monkeypatch.setattr(HiCoModelConfig, "setup", setup)
+    capfd.readouterr()
+    with pytest.raises(ModelSetup):
+        train_cli.entrypoint(train_args(large_colmap_dataset, tmp_path / "run", "--max-long-side", "800"))
