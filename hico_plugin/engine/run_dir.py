@@ -86,17 +86,21 @@ class RunLock:
             self._stream = None
 
 
-def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool, is_main: bool) -> Path | None:
-    """The checkpoint a run starts from (the same on every rank), or None for a fresh run.
+def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool,
+                     is_main: bool) -> tuple[Path | None, dict[str, Any] | None]:
+    """The checkpoint a run starts from (the same on every rank) and, on rank 0, its payload as read
+    here (other ranks read it themselves); (None, None) for a fresh run.
 
     Resuming takes the newest readable checkpoint; a fresh run into a folder that holds checkpoints
     needs ``overwrite`` (which deletes them). A fresh run deletes the logs of an earlier attempt."""
     checkpoint_dir = run_dir / "checkpoints"
-    newest = None
+    newest, payload = None, None
     if is_main:
         # Fresh runs only ask whether checkpoints exist; resumes skip unreadable newer ones.
-        newest = (newest_readable_checkpoint(checkpoint_dir) or (None, None))[0] if resume \
-            else latest_checkpoint(checkpoint_dir)
+        if resume:
+            newest, payload = newest_readable_checkpoint(checkpoint_dir) or (None, None)
+        else:
+            newest = latest_checkpoint(checkpoint_dir)
     latest = dist_utils.broadcast_object(newest)
     if latest is not None and not resume:
         if not overwrite:
@@ -113,7 +117,7 @@ def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool, is_main: bool
         if resume:
             print(f"note: no checkpoint in {checkpoint_dir}; starting a new run", file=sys.stderr)
     dist_utils.barrier()
-    return latest
+    return latest, payload
 
 
 def write_run_files(run_dir: Path, config: Any, model: Any) -> None:

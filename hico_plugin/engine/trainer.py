@@ -209,8 +209,9 @@ class Trainer:
             # analyses, building the model) and before the dataset's notes are printed, so a refusal is
             # the one line a refused run prints: the lock above, how the run starts (fresh / resumed /
             # overwritten), the checkpoint's frame against a parse of the cameras, the free space.
-            latest = start_checkpoint(self.run_dir, config.resume, config.overwrite, self.is_main)
-            payload = load_checkpoint(latest) if latest is not None else None
+            latest, payload = start_checkpoint(self.run_dir, config.resume, config.overwrite, self.is_main)
+            if latest is not None and payload is None:  # a rank other than 0 reads the checkpoint itself
+                payload = load_checkpoint(latest)
             seed_everything(config.seed)
             if dataset is None:
                 dataset = config.build_dataset(announce=False)
