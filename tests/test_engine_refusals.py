@@ -65,6 +65,7 @@ def test_a_run_another_trainer_holds_is_refused_first(large_colmap_dataset, tmp_
         holder.wait(timeout=60)
     assert line == (f"error: {run}: another trainer (pid {holder.pid}) is writing this run; wait for it, "
                     "or choose another --output-dir")
+    assert (run / ".lock").read_text() == f"pid {holder.pid}"  # the holder's run is left as it was
 
 
 def test_resuming_a_checkpoint_of_another_frame_is_refused_first(large_colmap_dataset, tmp_path, capfd,
@@ -77,6 +78,7 @@ def test_resuming_a_checkpoint_of_another_frame_is_refused_first(large_colmap_da
     line = only_line(train_cli.entrypoint, train_args(large_colmap_dataset, run, "--resume"), capfd)
     assert line.startswith(f"error: {checkpoint}: the model was trained in another scene frame")
     assert "(centre, scale differ)" in line
+    assert checkpoint.is_file()  # the run it did not resume is kept
 
 
 def test_too_little_disk_space_is_refused_first(large_colmap_dataset, tmp_path, capfd, slow_parts_forbidden,
@@ -86,15 +88,26 @@ def test_too_little_disk_space_is_refused_first(large_colmap_dataset, tmp_path, 
     line = only_line(train_cli.entrypoint, train_args(large_colmap_dataset, run), capfd)
     assert line.startswith(f"error: {run}: not enough disk space for the run: 1.0 MB free, about ")
     assert "choose another --output-dir" in line
+    assert not run.exists()  # a refused run leaves no empty folder behind
 
 
 @pytest.mark.parametrize("flag, value, field", [("--keep-checkpoints", "-1", "config.keep_checkpoints"),
                                                 ("--model.effects", "sky=maybe", "--model.effects"),
-                                                ("--test-every", "-3", "--test-every")])
+                                                ("--test-every", "-3", "--test-every"),
+                                                ("--downscale", "-2", "--downscale")])
 def test_a_bad_argument_is_refused_first(large_colmap_dataset, tmp_path, capfd, slow_parts_forbidden, flag, value,
                                          field):
-    line = only_line(train_cli.entrypoint, train_args(large_colmap_dataset, tmp_path / "run", flag, value), capfd)
+    run = tmp_path / "run"
+    line = only_line(train_cli.entrypoint, train_args(large_colmap_dataset, run, flag, value), capfd)
     assert line.startswith(f"error: {field}: expected")
+    assert not run.exists()  # refused before the run directory was made
+
+
+def test_a_missing_dataset_folder_is_refused_before_the_run_directory_is_made(tmp_path, capfd):
+    run = tmp_path / "run"
+    line = only_line(train_cli.entrypoint, train_args(tmp_path / "no-such-data", run), capfd)
+    assert line.startswith(f"error: data directory {tmp_path / 'no-such-data'}: not found")
+    assert not run.exists()
 
 
 def test_hico_eval_refuses_a_checkpoint_of_another_frame_before_the_analysis(tiny_run, tmp_path, capfd,

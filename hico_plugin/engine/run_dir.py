@@ -58,9 +58,11 @@ class RunLock:
     def __init__(self, run_dir: Path):
         self.path = Path(run_dir) / LOCK_NAME
         self._stream: IO[str] | None = None
+        self._created_dir = False
 
     def acquire(self) -> None:
         try:
+            self._created_dir = not self.path.parent.exists()
             self.path.parent.mkdir(parents=True, exist_ok=True)
             stream = self.path.open("a+", encoding="utf-8")
         except OSError as err:
@@ -84,6 +86,18 @@ class RunLock:
             fcntl.flock(self._stream.fileno(), fcntl.LOCK_UN)
             self._stream.close()
             self._stream = None
+
+    def abandon(self) -> None:
+        """Release a lock whose run was refused before it started, and remove the run directory when
+        ``acquire`` created it and it holds nothing else: a refused command leaves no empty run behind."""
+        held = self._stream is not None
+        self.release()
+        if held and self._created_dir:
+            self.path.unlink(missing_ok=True)
+            try:
+                self.path.parent.rmdir()
+            except OSError:  # something else was written into it: keep it
+                pass
 
 
 def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool,

@@ -116,9 +116,10 @@ class TrainerConfig(InstantiateConfig):
         for name in ("batch_size", "log_every", "max_nonfinite_steps"):
             if getattr(self, name) < 1:
                 raise HicoError(f"config.{name}: expected >= 1, got {getattr(self, name)}")
-        validate_model = getattr(self.model, "validate", None)  # the model config's own fields, when it checks them
-        if callable(validate_model):
-            validate_model()
+        for part in (self.data, self.model):  # their own fields, when they check them
+            validate_part = getattr(part, "validate", None)
+            if callable(validate_part):
+                validate_part()
 
     def wants_viewer(self) -> bool:
         return "viewer" in self.vis or (self.vis == "auto" and sys.stdout.isatty())
@@ -233,7 +234,7 @@ class Trainer:
                                                     config.progress, config.wants_tensorboard())
                 self.callbacks += list(callbacks)
         except BaseException:
-            self.run_lock.release()
+            self.run_lock.abandon()
             raise
 
     @property
