@@ -1,6 +1,7 @@
 """Every refusal comes first: a bad argument, a run another trainer holds, a checkpoint of another scene
 frame and too little disk space each end hico-train with one ``error:`` line (exit status 2) before any
-image is decoded, the effects analysis runs or the model is built, even on a large dataset."""
+image is decoded, the effects analysis runs or the model is built, even on a large dataset; hico-eval
+(every command that loads a run) refuses a checkpoint of another frame before building the model."""
 
 from __future__ import annotations
 

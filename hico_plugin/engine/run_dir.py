@@ -5,7 +5,7 @@ Like nerfstudio, a run without ``--output-dir`` gets its own folder
 ``outputs/<experiment>/<method>/<timestamp>/``; ``--resume`` without one continues the newest there.
 While a trainer writes a run it holds an exclusive ``flock`` on ``RUN/.lock`` (the kernel drops it
 when the process dies, however it dies, so a crash never leaves a stale lock); a second trainer on
-the same folder refuses in one line.
+the same folder refuses in one line, and a run refused before it started removes the folder it made.
 
 A run directory (``config.output_dir``, locked while a trainer writes it)::
 
