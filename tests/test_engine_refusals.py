@@ -82,11 +82,12 @@ def test_resuming_a_checkpoint_of_another_frame_is_refused_first(large_colmap_da
     assert checkpoint.is_file()  # the run it did not resume is kept
 
 
+@pytest.mark.parametrize("resume", [[], ["--resume"]])  # resuming a run without checkpoints starts afresh
 def test_too_little_disk_space_is_refused_first(large_colmap_dataset, tmp_path, capfd, slow_parts_forbidden,
-                                                monkeypatch):
+                                                monkeypatch, resume):
     run = tmp_path / "run"
     monkeypatch.setattr(disk_space, "free_bytes", lambda folder: 2**20)
-    line = only_line(train_cli.entrypoint, train_args(large_colmap_dataset, run), capfd)
+    line = only_line(train_cli.entrypoint, train_args(large_colmap_dataset, run, *resume), capfd)
     assert line.startswith(f"error: {run}: not enough disk space for the run: 1.0 MB free, about ")
     assert "choose another --output-dir" in line
     assert not run.exists()  # a refused run leaves no empty folder behind

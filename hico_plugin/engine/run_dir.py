@@ -23,7 +23,6 @@ import fcntl
 import json
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import IO, Any
@@ -128,8 +127,6 @@ def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool,
     if latest is None and is_main:
         for name in ("metrics.jsonl", "eval.json"):
             (run_dir / name).unlink(missing_ok=True)
-        if resume:
-            print(f"note: no checkpoint in {checkpoint_dir}; starting a new run", file=sys.stderr)
     dist_utils.barrier()
     return latest, payload
 

@@ -220,6 +220,8 @@ class Trainer:
                 check_frame(payload, dataset_frame(dataset), latest)
             self._check_free_space(dataset)
             if self.is_main:
+                if config.resume and latest is None:
+                    print(f"note: no checkpoint in {self.checkpoint_dir}; starting a new run", file=sys.stderr)
                 for note in getattr(dataset, "notes", ()):
                     print(note, file=sys.stderr)
             if model is None:
