@@ -34,11 +34,9 @@ class HiCoTrainerConfig(TrainerConfig):
     viewer: ViewerConfig = dataclass_field(default_factory=ViewerConfig)
     """Live viewer (started when --vis is viewer, or auto on a terminal)."""
 
-    def build(self, device: torch.device) -> tuple[Any, Any]:
+    def build_model(self, dataset: Any, device: torch.device) -> Any:
         # The model needs the run length to scale its schedules (levels, densification, DNGC t0 / T).
-        dataset = self.data.setup()
-        model = self.model.setup(dataset=dataset, total_steps=self.max_steps)
-        return model.to(device), dataset
+        return self.model.setup(dataset=dataset, total_steps=self.max_steps).to(device)
 
 
 def _with(config: HiCoTrainerConfig, method_name: str, *, context: str | None = None, dngc: bool | None = None,

@@ -19,3 +19,12 @@ def tiny_run(tmp_path_factory) -> Path:
     train(parse(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
                  "--output-dir", str(out), "--model.eval-lpips", "none", "--model.renderer.no-use-compile"]))
     return out
+
+
+@pytest.fixture(scope="session")
+def large_colmap_dataset(tmp_path_factory) -> Path:
+    """A COLMAP dataset of 300 photos of 1600x1200 px (one JPEG hard-linked 300 times): decoding and
+    analysing it takes seconds, so a check that runs after that is plain to see."""
+    from helpers_datasets import write_large_colmap_dataset
+
+    return write_large_colmap_dataset(tmp_path_factory.mktemp("large-colmap"))

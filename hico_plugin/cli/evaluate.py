@@ -76,6 +76,8 @@ def save_test_renders(run: LoadedRun, render_dir: Path) -> int:
 
 
 def main(args: EvalArgs) -> dict[str, Any]:
+    if args.mesh is not None and not args.mesh.is_file():
+        raise HicoError(f"--mesh: {args.mesh} is not a file (expected a PLY written by hico-export ... mesh)")
     run = load_run(args.load_config, args.checkpoint, args.device)
     indices = [int(i) for i in run.dataset.test_indices]
     if not indices:
@@ -85,8 +87,6 @@ def main(args: EvalArgs) -> dict[str, Any]:
         run.model.render(run.dataset.cameras[indices[0]], ("rgb",))
     results = evaluate(run.model, run.dataset, indices, device)
     results.update(checkpoint_info(run.checkpoint))
-    if args.mesh is not None and not args.mesh.is_file():
-        raise HicoError(f"--mesh: {args.mesh} is not a file (expected a PLY written by hico-export ... mesh)")
     results.update(surface_results(run.dataset, args.mesh or run.run_dir / "exports" / "mesh.ply"))
     output_path = args.output_path or run.run_dir / "eval.json"
     write_eval_json(output_path, run.config.experiment_name, run.config.method_name, str(run.checkpoint), results)

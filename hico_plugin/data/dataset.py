@@ -66,6 +66,7 @@ class Dataset:
         metadata: dict[str, Any],
         tracks: Any = None,
         depth_paths: list[Path | None] | None = None,
+        notes: list[str] | None = None,
     ):
         self.data_dir = data_dir
         self.image_names = image_names
@@ -83,6 +84,7 @@ class Dataset:
         self.metadata = metadata
         self.tracks = tracks  # the format's SfM tracks (e.g. a pycolmap.Reconstruction) when it has them
         self.depth_paths = depth_paths  # [N] the format's depth maps (transforms.json depth_file_path)
+        self.notes = notes or []  # what reading the dataset found worth saying (printed once by its reader)
         self._cache = ByteLRUCache(cache_bytes)
         self._maps = ByteLRUCache(_MAPS_CACHE_BYTES)
         self._surface_points: Tensor | None = None

@@ -93,33 +93,41 @@ class DataParserConfig(InstantiateConfig):
         self.test_list = Path(self.test_list) if self.test_list is not None else None
         self.test_names = tuple(self.test_names)
 
-    def setup(self, **kwargs: Any) -> Dataset:
-        return self.parse()
+    def setup(self, announce: bool = True, **kwargs: Any) -> Dataset:
+        return self.parse(announce)
 
-    def parse(self) -> Dataset:
-        """Read, check and normalise the dataset; images stay on disk until first used."""
-        data_dir = self.data
-        if not data_dir.is_dir():
-            raise HicoError(f"data directory {data_dir}: not found (expected a dataset folder, e.g. images/ + sparse/0)")
+    def validate(self) -> None:
+        """A HicoError for an argument that is wrong whatever the dataset holds: checked before the
+        dataset is read (and by hico-train before it takes the run directory)."""
+        if self.data is not None and not self.data.is_dir():  # None: a built-in scene (DataSourceConfig)
+            raise HicoError(f"data directory {self.data}: not found (expected a dataset folder, e.g. images/ + sparse/0)")
         if self.downscale < 0:
             raise HicoError(f"--downscale: expected 0 (auto) or a whole number >= 1, got {self.downscale}")
+        if self.test_every < 0:
+            raise HicoError(f"--test-every: expected 0 (no test split) or a positive number, got {self.test_every}")
+        if self.split not in ("interleaved", "extrapolate"):
+            raise HicoError(f"--split: expected interleaved or extrapolate, got '{self.split}'")
+
+    def parse(self, announce: bool = True) -> Dataset:
+        """Read, check and normalise the dataset; images stay on disk until first used. The notes the
+        reading made (frames skipped, the automatic downscale, ...) are printed when ``announce``, and kept
+        in ``Dataset.notes`` either way: a trainer prints them only once every refusal is behind it."""
+        self.validate()
+        data_dir = self.data
         record = (self.format or detect_format(data_dir)).read(data_dir)
-        for note in record.notes:
-            print(note, file=sys.stderr)
+        notes = list(record.notes)
         missing = [str(path) for path in record.image_paths if not path.is_file()]
         if missing:
             raise HicoError(
                 f"{missing[0]}: image listed in the dataset but not on disk ({len(missing)} of {len(record.image_paths)} missing)"
             )
-        downscale = self.downscale or self._auto_downscale(record)
+        downscale = self.downscale or self._auto_downscale(record, notes)
         image_paths = [self._downscaled_path(path, downscale) for path in record.image_paths]
         train_indices, test_indices = self._split(record.names, record.test_names)
         if self.split == "extrapolate":
             rotations, translations = record.viewmats[:, :3, :3], record.viewmats[:, :3, 3:]
             centres = -(np.transpose(rotations, (0, 2, 1)) @ translations)[..., 0]
             train_indices, test_indices = extrapolation_split(centres, self.test_every)
-        elif self.split != "interleaved":
-            raise HicoError(f"--split: expected interleaved or extrapolate, got '{self.split}'")
         train_indices = sparse_views(train_indices, self.train_every)
 
         sources = {cid: self._camera_source(camera, downscale) for cid, camera in record.cameras.items()}
@@ -141,7 +149,7 @@ class DataParserConfig(InstantiateConfig):
             widths=torch.tensor([camera.width for camera in pinholes], dtype=torch.int64),
             heights=torch.tensor([camera.height for camera in pinholes], dtype=torch.int64),
         )
-        return Dataset(
+        dataset = Dataset(
             data_dir=data_dir,
             image_names=record.names,
             image_paths=image_paths,
@@ -161,16 +169,21 @@ class DataParserConfig(InstantiateConfig):
             metadata=self._metadata(),
             tracks=record.tracks,
             depth_paths=record.depth_paths,
+            notes=notes,
         )
+        if announce:
+            for note in notes:
+                print(note, file=sys.stderr)
+        return dataset
 
-    def _auto_downscale(self, record: SceneRecord) -> int:
+    def _auto_downscale(self, record: SceneRecord, notes: list[str]) -> int:
         long_side = max(max(camera.width, camera.height) for camera in record.cameras.values())
         factor = 1
         while long_side / factor > self.max_long_side:
             factor *= 2
         if factor > 1:
-            print(f"downscale: images have a {long_side} px long side; loading at 1/{factor} "
-                  f"(--max-long-side {self.max_long_side}; --downscale 1 keeps full resolution)", file=sys.stderr)
+            notes.append(f"downscale: images have a {long_side} px long side; loading at 1/{factor} "
+                         f"(--max-long-side {self.max_long_side}; --downscale 1 keeps full resolution)")
         return factor
 
     def _downscaled_path(self, path: Path, factor: int) -> Path:
@@ -203,12 +216,8 @@ class DataParserConfig(InstantiateConfig):
             is_test[[position[name] for name in test_names]] = True
         elif self.test_every > 0:
             is_test = np.arange(len(names)) % self.test_every == 0
-        elif self.test_every == 0:
+        else:  # 0 (validate refused a negative one)
             is_test = np.zeros(len(names), dtype=bool)
-        else:
-            raise HicoError(
-                f"--test-every: expected 0 (no test split) or a positive number, got {self.test_every}"
-            )
         if is_test.all():
             field = "--test-names" if self.test_names else f"--test-every {self.test_every}"
             raise HicoError(f"{field}: the test split takes all {len(names)} images, leaving none to train on")

@@ -5,6 +5,7 @@ checkpoint (or the one asked for) through ``weights_only`` loading, the model re
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,8 +58,13 @@ def load_run(config_path: str | Path, checkpoint: str | Path | None = None, devi
     else:
         path, payload = _newest(config_path, config.output_dir)
     seed_everything(config.seed)
-    model, dataset = config.build(resolve_device(device or config.device))
+    # Cameras and points only, so a checkpoint of another frame is refused before the data analyses
+    # and the model's setup, and before anything else is printed.
+    dataset = config.build_dataset(announce=False)
     check_frame(payload, dataset_frame(dataset), path)
+    for note in getattr(dataset, "notes", ()):
+        print(note, file=sys.stderr)
+    model = config.build_model(dataset, resolve_device(device or config.device))
     restore_model(model, payload, path)
     if isinstance(model, nn.Module):
         model.eval()

@@ -5,7 +5,7 @@ Like nerfstudio, a run without ``--output-dir`` gets its own folder
 ``outputs/<experiment>/<method>/<timestamp>/``; ``--resume`` without one continues the newest there.
 While a trainer writes a run it holds an exclusive ``flock`` on ``RUN/.lock`` (the kernel drops it
 when the process dies, however it dies, so a crash never leaves a stale lock); a second trainer on
-the same folder refuses in one line.
+the same folder refuses in one line, and a run refused before it started removes the folder it made.
 
 A run directory (``config.output_dir``, locked while a trainer writes it)::
 
@@ -23,7 +23,6 @@ import fcntl
 import json
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import IO, Any
@@ -58,9 +57,11 @@ class RunLock:
     def __init__(self, run_dir: Path):
         self.path = Path(run_dir) / LOCK_NAME
         self._stream: IO[str] | None = None
+        self._created_dir = False
 
     def acquire(self) -> None:
         try:
+            self._created_dir = not self.path.parent.exists()
             self.path.parent.mkdir(parents=True, exist_ok=True)
             stream = self.path.open("a+", encoding="utf-8")
         except OSError as err:
@@ -85,18 +86,34 @@ class RunLock:
             self._stream.close()
             self._stream = None
 
+    def abandon(self) -> None:
+        """Release a lock whose run was refused before it started, and remove the run directory when
+        ``acquire`` created it and it holds nothing else: a refused command leaves no empty run behind."""
+        held = self._stream is not None
+        self.release()
+        if held and self._created_dir:
+            self.path.unlink(missing_ok=True)
+            try:
+                self.path.parent.rmdir()
+            except OSError:  # something else was written into it: keep it
+                pass
 
-def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool, is_main: bool) -> Path | None:
-    """The checkpoint a run starts from (the same on every rank), or None for a fresh run.
+
+def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool,
+                     is_main: bool) -> tuple[Path | None, dict[str, Any] | None]:
+    """The checkpoint a run starts from (the same on every rank) and, on rank 0, its payload as read
+    here (other ranks read it themselves); (None, None) for a fresh run.
 
     Resuming takes the newest readable checkpoint; a fresh run into a folder that holds checkpoints
     needs ``overwrite`` (which deletes them). A fresh run deletes the logs of an earlier attempt."""
     checkpoint_dir = run_dir / "checkpoints"
-    newest = None
+    newest, payload = None, None
     if is_main:
         # Fresh runs only ask whether checkpoints exist; resumes skip unreadable newer ones.
-        newest = (newest_readable_checkpoint(checkpoint_dir) or (None, None))[0] if resume \
-            else latest_checkpoint(checkpoint_dir)
+        if resume:
+            newest, payload = newest_readable_checkpoint(checkpoint_dir) or (None, None)
+        else:
+            newest = latest_checkpoint(checkpoint_dir)
     latest = dist_utils.broadcast_object(newest)
     if latest is not None and not resume:
         if not overwrite:
@@ -110,10 +127,8 @@ def start_checkpoint(run_dir: Path, resume: bool, overwrite: bool, is_main: bool
     if latest is None and is_main:
         for name in ("metrics.jsonl", "eval.json"):
             (run_dir / name).unlink(missing_ok=True)
-        if resume:
-            print(f"note: no checkpoint in {checkpoint_dir}; starting a new run", file=sys.stderr)
     dist_utils.barrier()
-    return latest
+    return latest, payload
 
 
 def write_run_files(run_dir: Path, config: Any, model: Any) -> None:

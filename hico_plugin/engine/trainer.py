@@ -2,10 +2,10 @@
 
 Its neighbours hold the parts: ``step`` (one optimizer step and its all-reduce), ``data`` (each step's
 batch), ``run_dir`` (where a run lives, its lock, how it starts: fresh / resumed / overwritten),
-``checkpoints`` (files and what a checkpoint holds), ``evaluation`` (the test split, when to evaluate,
-eval.json), ``controls`` (pause / checkpoint / stop from the viewer), ``stopping`` (SIGINT / SIGTERM /
-SIGHUP), ``timing`` (train time, it/s), ``callbacks`` (logs, progress), ``loading`` (a trained run for
-the CLIs).
+``checkpoints`` (files and what a checkpoint holds), ``disk_space`` (room for the run), ``evaluation``
+(the test split, when to evaluate, eval.json), ``controls`` (pause / checkpoint / stop from the viewer),
+``stopping`` (SIGINT / SIGTERM / SIGHUP), ``timing`` (train time, it/s), ``callbacks`` (logs, progress),
+``loading`` (a trained run for the CLIs).
 
 Steps: ``Trainer.step`` counts completed optimizer steps; hooks and callbacks get the 0-based index of
 the step just run. The model's schedules use the same optimizer-step counter.
@@ -29,6 +29,7 @@ from hico_plugin.engine.checkpoints import (
     checkpoint_due,
     check_frame,
     dataset_frame,
+    list_checkpoints,
     load_checkpoint,
     restore_model,
     restore_rank_rng,
@@ -39,6 +40,7 @@ from hico_plugin.engine.checkpoints import (
 )
 from hico_plugin.engine.controls import TrainerControls
 from hico_plugin.engine.data import rank_batch
+from hico_plugin.engine.disk_space import check_free_space, run_bytes_needed
 from hico_plugin.engine.evaluation import evaluate, periodic_eval_due, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import TrainableModel, TrainDataset
@@ -58,9 +60,9 @@ from hico_plugin.errors import HicoError
 class TrainerConfig(InstantiateConfig):
     """A whole training run: what to train (``data``, ``model``) and how (the rest).
 
-    Presets subclass this with concrete ``data`` / ``model`` config types. ``build`` makes the
-    dataset with ``data.setup()`` and the model with ``model.setup(dataset=dataset)``; override it
-    when a model needs more.
+    Presets subclass this with concrete ``data`` / ``model`` config types. ``build_dataset`` makes the
+    dataset with ``data.setup()`` and ``build_model`` the model with ``model.setup(dataset=dataset)``;
+    override the latter when a model needs more.
     """
 
     method_name: str = "hico-gs"
@@ -107,13 +109,17 @@ class TrainerConfig(InstantiateConfig):
     """Under torchrun: how long a worker waits for the others at a collective before failing."""
 
     def validate(self) -> None:
-        """A HicoError naming the first field out of range."""
+        """A HicoError naming the first field out of range (run before anything is read)."""
         for name in ("max_steps", "eval_every", "save_every", "keep_checkpoints"):
             if getattr(self, name) < 0:
                 raise HicoError(f"config.{name}: expected >= 0, got {getattr(self, name)}")
         for name in ("batch_size", "log_every", "max_nonfinite_steps"):
             if getattr(self, name) < 1:
                 raise HicoError(f"config.{name}: expected >= 1, got {getattr(self, name)}")
+        for part in (self.data, self.model):  # their own fields, when they check them
+            validate_part = getattr(part, "validate", None)
+            if callable(validate_part):
+                validate_part()
 
     def wants_viewer(self) -> bool:
         return "viewer" in self.vis or (self.vis == "auto" and sys.stdout.isatty())
@@ -121,16 +127,29 @@ class TrainerConfig(InstantiateConfig):
     def wants_tensorboard(self) -> bool:
         return "tensorboard" in self.vis
 
-    def build(self, device: torch.device) -> tuple[TrainableModel, TrainDataset]:
-        """The model (on ``device``) and dataset this config describes."""
+    def build_dataset(self, announce: bool = True) -> TrainDataset:
+        """The dataset: cameras, poses and seed points parsed, images left on disk (cheap, so the checks
+        that need the dataset's frame or size run before the model is built). Its notes are printed
+        when ``announce``."""
         if self.data is None or self.model is None:
             raise HicoError("config: 'data' and 'model' must be set to build a run")
-        dataset = self.data.setup()
-        model = self.model.setup(dataset=dataset)
-        return model.to(device), dataset
+        return self.data.setup(announce=announce)
+
+    def build_model(self, dataset: TrainDataset, device: torch.device) -> TrainableModel:
+        """The model of ``dataset`` on ``device`` (the slow part: data analyses, the model's setup)."""
+        return self.model.setup(dataset=dataset).to(device)
+
+    def run_bytes_needed(self, dataset: TrainDataset) -> int:
+        """Disk space the run will need (``disk_space.run_bytes_needed``), from the model config's
+        checkpoint size estimate for the dataset's seed points when it has one, else logs only."""
+        estimate = getattr(self.model, "checkpoint_bytes", None)
+        points = getattr(dataset, "points", None)
+        checkpoint = estimate(len(points)) if callable(estimate) and points is not None else 0
+        return run_bytes_needed(checkpoint, self.keep_checkpoints, self.max_steps, self.save_every)
 
     def setup(self, **kwargs: Any) -> "Trainer":
-        """The Trainer of this run; ``model=`` / ``dataset=`` / ``callbacks=`` override ``build``."""
+        """The Trainer of this run; ``model=`` / ``dataset=`` / ``callbacks=`` override
+        ``build_model`` / ``build_dataset``."""
         return Trainer(self, **kwargs)
 
 
@@ -172,15 +191,6 @@ class Trainer:
         self.distributed = dist_utils.init_distributed(self.device, config.distributed_timeout_minutes)
         self.rank = dist_utils.get_rank()
         self.world_size = dist_utils.get_world_size()
-        seed_everything(config.seed)
-        if model is None or dataset is None:
-            built_model, built_dataset = config.build(self.device)
-            model = built_model if model is None else model
-            dataset = built_dataset if dataset is None else dataset
-        self.model = model.to(self.device) if isinstance(model, nn.Module) else model
-        self.dataset = dataset
-        self.train_indices = [int(i) for i in dataset.train_indices]
-        self.test_indices = [int(i) for i in dataset.test_indices]
         self.run_dir = Path(config.output_dir)
         self.checkpoint_dir = self.run_dir / "checkpoints"
         self.callbacks: list[TrainerCallback] = []
@@ -196,13 +206,37 @@ class Trainer:
         if self.is_main:
             self.run_lock.acquire()
         try:
-            self._start_run()
+            # Every check that can refuse the run comes before anything slow (decoding images, the data
+            # analyses, building the model) and before the dataset's notes are printed, so a refusal is
+            # the one line a refused run prints: the lock above, how the run starts (fresh / resumed /
+            # overwritten), the checkpoint's frame against a parse of the cameras, the free space.
+            latest, payload = start_checkpoint(self.run_dir, config.resume, config.overwrite, self.is_main)
+            if latest is not None and payload is None:  # a rank other than 0 reads the checkpoint itself
+                payload = load_checkpoint(latest)
+            seed_everything(config.seed)
+            if dataset is None:
+                dataset = config.build_dataset(announce=False)
+            if payload is not None:
+                check_frame(payload, dataset_frame(dataset), latest)
+            self._check_free_space(dataset)
+            if self.is_main:
+                if config.resume and latest is None:
+                    print(f"note: no checkpoint in {self.checkpoint_dir}; starting a new run", file=sys.stderr)
+                for note in getattr(dataset, "notes", ()):
+                    print(note, file=sys.stderr)
+            if model is None:
+                model = config.build_model(dataset, self.device)
+            self.model = model.to(self.device) if isinstance(model, nn.Module) else model
+            self.dataset = dataset
+            self.train_indices = [int(i) for i in dataset.train_indices]
+            self.test_indices = [int(i) for i in dataset.test_indices]
+            self._start_run(latest, payload)
             if self.is_main:
                 self.callbacks += default_callbacks(self.run_dir, config.max_steps, config.log_every,
                                                     config.progress, config.wants_tensorboard())
                 self.callbacks += list(callbacks)
         except BaseException:
-            self.run_lock.release()
+            self.run_lock.abandon()
             raise
 
     @property
@@ -237,10 +271,24 @@ class Trainer:
             self.callbacks.append(callback)
 
     # ----------------------------------------------------------------- start, checkpoints
-    def _start_run(self) -> None:
-        latest = start_checkpoint(self.run_dir, self.config.resume, self.config.overwrite, self.is_main)
-        if latest is not None:
-            self.load_checkpoint(latest)
+    def _check_free_space(self, dataset: TrainDataset) -> None:
+        """Refuse (on every rank) when rank 0's run directory lacks the space the run needs; its own
+        checkpoints count as free (a resumed run rotates them out)."""
+        problem = None
+        if self.is_main:
+            try:
+                reclaimable = sum(path.stat().st_size for path in list_checkpoints(self.checkpoint_dir))
+                check_free_space(self.run_dir, self.config.run_bytes_needed(dataset), reclaimable)
+            except HicoError as err:
+                problem = str(err)
+        problem = dist_utils.broadcast_object(problem)
+        if problem is not None:
+            raise HicoError(problem)
+
+    def _start_run(self, latest: Path | None, payload: dict[str, Any] | None) -> None:
+        """Restore the checkpoint ``latest`` (its ``payload``, frame already checked) or start afresh."""
+        if latest is not None and payload is not None:  # both or neither
+            self._restore(latest, payload)
             if self.is_main:
                 trim_metrics(self.run_dir / "metrics.jsonl", self.step)
         else:
@@ -253,10 +301,8 @@ class Trainer:
     def _make_optimizers(self) -> Optimizers:
         return Optimizers(self.model.param_groups(), self.model.lr_schedules(self.config.max_steps))
 
-    def load_checkpoint(self, path: Path) -> None:
-        """Restore model, optimizers, step, train time and RNG states from ``path``."""
-        payload = load_checkpoint(Path(path))
-        check_frame(payload, dataset_frame(self.dataset), Path(path))
+    def _restore(self, path: Path, payload: dict[str, Any]) -> None:
+        """Restore model, optimizers, step, train time and RNG states from ``payload`` (read from ``path``)."""
         restore_model(self.model, payload, Path(path))
         self.optimizers = self._make_optimizers()  # after loading: the model may hold new Parameters
         self.optimizers.load_state_dict(payload["optimizers"])

@@ -36,7 +36,7 @@ from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
 from hico_plugin.model import lod as _lod  # noqa: F401 -- registers the "lod" effect
 from hico_plugin.model.appearance import AffineColour
-from hico_plugin.model.effects import EFFECTS, choose_effects
+from hico_plugin.model.effects import EFFECTS, choose_effects, parse_effects
 from hico_plugin.model.sky import SkyConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
@@ -60,6 +60,10 @@ def default_optimizers() -> dict[str, ParamGroupOptimizerConfig]:
         "sky": lr(0.01, 1e-4),  # a small MLP like the colour MLP, a little faster: sky is simple
         "exposure": lr(2e-3, 1e-4),  # settles a 0.35-stop gain within a few hundred steps
     }
+
+
+ANCHORS_PER_SEED_POINT = 32
+"""Anchors a run may end with per seed point, for the checkpoint size estimate (``checkpoint_bytes``)."""
 
 
 @dataclass
@@ -88,6 +92,21 @@ class HiCoModelConfig(InstantiateConfig):
     """LPIPS backbone at evaluation ("vgg" as CityGS-X, "alex", or "none" to skip it)."""
     optimizers: dict[str, ParamGroupOptimizerConfig] = dataclass_field(default_factory=default_optimizers)
     """Adam learning-rate schedule per parameter group (groups of effects that are off are unused)."""
+
+    def validate(self) -> None:
+        """A HicoError for a bad --model.effects, before the dataset is read (the trainer's validate)."""
+        parse_effects(self.effects)
+
+    def checkpoint_bytes(self, num_points: int) -> int:
+        """A generous size of a training checkpoint of this model grown from ``num_points`` seed points,
+        known before the model is built (the free-space check runs first): per anchor its parameters
+        (position 3, offsets 3K, feature d, scaling 6 floats) with Adam's two moments, and its per-anchor
+        buffers (level, statistics and their synced copies: about 7 + 4K floats). Densification multiplies
+        the anchors: city-block's 4,000 seed points end at 69.5k to 91k anchors (the README's CLCA
+        table), about 23 per point; ANCHORS_PER_SEED_POINT leaves room above that."""
+        k, d = self.field.decoder.num_offsets, self.field.feature_dim
+        floats_per_anchor = 3 * (3 + 3 * k + d + 6) + 7 + 4 * k
+        return 4 * floats_per_anchor * ANCHORS_PER_SEED_POINT * max(num_points, 1)
 
     def setup(self, dataset: Any = None, total_steps: int | None = None, **kwargs: Any) -> "HiCoModel":
         if dataset is None:

@@ -1,0 +1,45 @@
+"""Datasets for tests that are large on disk but cheap to make."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+
+def ring_pose(angle: float, radius: float = 4.0, height: float = 1.5) -> np.ndarray:
+    """[3, 4] cam_from_world of a camera on a ring around the origin looking at it (OpenCV axes, z up)."""
+    centre = np.array([radius * np.cos(angle), radius * np.sin(angle), height])
+    forward = -centre / np.linalg.norm(centre)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    rotation = np.stack([right, np.cross(forward, right), forward])
+    return np.concatenate([rotation, -rotation @ centre[:, None]], axis=1)
+
+
+def write_large_colmap_dataset(root: Path, num_images: int = 300, size: tuple[int, int] = (1600, 1200),
+                               num_points: int = 2_000, seed: int = 0) -> Path:
+    """A COLMAP dataset in ``root`` of ``num_images`` photos of ``size`` px, as costly to decode and
+    analyse as real ones: one noise JPEG, hard-linked under every name (seconds to make, one file's
+    worth of disk), cameras on a ring, random points near the origin. Returns ``root``."""
+    rng = np.random.default_rng(seed)
+    width, height = size
+    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 0.8 * width, width, height)
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.add_camera_with_trivial_rig(camera)
+    (root / "images").mkdir(parents=True)
+    photo = root / "photo.jpg"
+    cv2.imwrite(str(photo), rng.integers(0, 256, (height, width, 3), dtype=np.uint8))
+    for i in range(num_images):
+        name = f"view_{i:04d}.jpg"
+        os.link(photo, root / "images" / name)
+        reconstruction.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1, image_id=i + 1),
+                                                    pycolmap.Rigid3d(ring_pose(2 * np.pi * i / num_images)))
+    for xyz in rng.uniform(-1, 1, (num_points, 3)):
+        reconstruction.add_point3D(xyz, pycolmap.Track(), rng.integers(0, 256, 3, dtype=np.uint8))
+    (root / "sparse" / "0").mkdir(parents=True)
+    reconstruction.write_binary(str(root / "sparse" / "0"))
+    return root
