@@ -86,6 +86,11 @@ def scene_extent(dataset: Any) -> float:
     return extent
 
 
+def default_voxel_size(dataset: Any) -> float:
+    """The TSDF voxel edge (normalised units) when --voxel-size is not given: scene extent / 512."""
+    return scene_extent(dataset) / 512
+
+
 @torch.no_grad()
 def render_depths(model: Any, dataset: Any, indices: list[int], depth: str
                   ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
@@ -107,7 +112,7 @@ def extract_mesh(model: Any, dataset: Any, config: MeshExportConfig) -> Triangle
     indices = [int(i) for i in dataset.train_indices]
     if not indices:
         raise HicoError("mesh: the dataset has no training views to render")
-    voxel = config.voxel_size * scale if config.voxel_size is not None else scene_extent(dataset) / 512
+    voxel = config.voxel_size * scale if config.voxel_size is not None else default_voxel_size(dataset)
     trunc = config.sdf_trunc * scale if config.sdf_trunc is not None else 4 * voxel
     max_depth = config.max_depth * scale if config.max_depth is not None else dataset.camera_distance_range()[1]
     depths, colors, alphas = render_depths(model, dataset, indices, config.depth)
