@@ -19,7 +19,8 @@ from hico_plugin.cli import analyze as analyze_cli
 from hico_plugin.cli import bench as bench_cli
 from hico_plugin.errors import HicoError
 
-ARGS = ["--quick", "--presets", "octree-gs", "hico-gs", "--budgets", "1", "3", "--max-eval-views", "1"]
+# 30 steps: well past the 10-20 at which the tiny scene's mesh first keeps a component of 1,000 triangles
+ARGS = ["--quick", "--presets", "octree-gs", "hico-gs", "--budgets", "1", "30", "--max-eval-views", "1"]
 
 
 @pytest.fixture(scope="module")
@@ -33,15 +34,15 @@ def test_quick_matrix_records_every_cell(bench_dir):
     results = load_results(bench_dir)
     cells = results["cells"]
     assert {(c["preset"], c["scene"], c["budget"]) for c in cells} == {
-        (p, "tiny", b) for p in ("octree-gs", "hico-gs") for b in (1, 3)}
+        (p, "tiny", b) for p in ("octree-gs", "hico-gs") for b in (1, 30)}
     for cell in cells:
         assert cell["psnr"] > 5 and 0 < cell["ssim"] <= 1 and cell["lpips"] is None  # quick skips LPIPS
         assert cell["normal_error_deg"] is not None and cell["depth_abs_rel"] is not None  # tiny has GT
         assert cell["num_anchors"] > 0 and cell["num_gaussians"] > 0 and cell["fps"] > 0
-        assert cell["max_steps"] == 3 and cell["wall_seconds"] > 0
+        assert cell["max_steps"] == 30 and cell["wall_seconds"] > 0
         assert set(cell["stage_ms"]) == set(STAGES) and cell["wall_ms_per_step"] > 0
         assert cell["step_ms"] == pytest.approx(sum(cell["stage_ms"].values()))
-    final = {c["preset"]: c for c in cells if c["budget"] == 3}
+    final = {c["preset"]: c for c in cells if c["budget"] == 30}
     for stage in ("lod_select", "decode", "rasterize", "losses", "backward", "optimizer"):
         assert final["hico-gs"]["stage_ms"][stage] > 0
     assert final["hico-gs"]["stage_ms"]["clca"] > 0  # CLCA runs its MLP
@@ -52,7 +53,8 @@ def test_quick_matrix_records_every_cell(bench_dir):
 
 def test_report_contents(bench_dir):
     report = (bench_dir / "report.md").read_text()
-    assert "## Ablation" in report and "| method | tiny PSNR | Δ vs octree-gs | tiny normal err (°) | train time (s) | ms / step |" in report
+    assert "## Ablation" in report and ("| method | tiny PSNR | Δ vs octree-gs | tiny normal err (°) | tiny mesh F1 | "
+                                        "train time (s) | ms / step |") in report
     assert "## Accuracy vs time" in report and "★" in report
     assert "## Where a training step's time goes" in report and "| clca |" in report
     assert "CLCA + DNGC (hico-gs)" in report
@@ -129,8 +131,40 @@ def test_mode_alone_gives_its_defaults():
 def test_report_lists_its_settings(bench_dir):
     report = (bench_dir / "report.md").read_text()
     assert "- presets: octree-gs, hico-gs" in report and "- scenes: tiny" in report
-    assert "- budgets: 1, 3 steps (nested schedule)" in report
+    assert "- budgets: 1, 30 steps (nested schedule)" in report
     assert "- downscale: 1; LPIPS: none; eval views: at most 1; seeds: 42" in report
+    assert "- mesh F1: hico-export mesh defaults" in report and "voxel = scene extent / 512" in report
+
+
+def test_cells_record_mesh_f1_by_default(bench_dir):
+    """Each cell is meshed as hico-export does and scored as hico-eval does: F1 in (0, 1], tau the
+    tiny scene's ground-truth rule, the voxel the exporter's default (COLMAP units), all in the tables."""
+    from hico_plugin.data import DataParserConfig
+    from hico_plugin.mesh.extract import default_voxel_size
+    from hico_plugin.metrics.geometry import gt_spacing_threshold
+    from hico_plugin.scenes.generate import generate_scene
+
+    assert BenchConfig().mesh and BENCH_MODES["quick"].mesh
+    cells = load_results(bench_dir)["cells"]
+    final = [c for c in cells if c["budget"] == 30]
+    assert all(0 < c["surface_f1"] <= 1 and 0 < c["surface_precision"] <= 1 for c in final), final
+    tiny = DataParserConfig(data=generate_scene("tiny")).setup()
+    gt = tiny.transform.points_to_colmap(tiny.gt_surface_points.double())
+    for cell in final:
+        assert cell["surface_tau"] == pytest.approx(gt_spacing_threshold(gt), rel=1e-6)
+        assert cell["mesh_voxel"] == pytest.approx(default_voxel_size(tiny) / tiny.transform.scale, rel=1e-6)
+    report = (bench_dir / "report.md").read_text()
+    tau, voxel = final[0]["surface_tau"], final[0]["mesh_voxel"]
+    assert f"tiny: voxel {voxel:.4f}, tau {tau:.4f}" in report
+    assert f"| {final[0]['surface_f1']:.3f} |" in report
+
+
+def test_mesh_off_is_another_cell(tmp_path):
+    from hico_plugin.bench.matrix import plan
+
+    on = BenchConfig(presets=("hico-gs",), scenes=("tiny",), budgets=(2,), output_dir=tmp_path).resolved()
+    off = BenchConfig(**{**on.__dict__, "mesh": False})
+    assert plan(on)[0]["cells"][2] != plan(off)[0]["cells"][2]  # cached cells without F1 are not reused
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):

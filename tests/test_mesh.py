@@ -4,8 +4,11 @@ surface, bad depth gives a clear error, cleaning drops floaters, the depth filte
 from __future__ import annotations
 
 import importlib.util
+import shutil
+from types import SimpleNamespace
 
 import numpy as np
+import pycolmap
 import pytest
 import torch
 
@@ -48,6 +51,27 @@ def tiny(tmp_path_factory):
     # for a surface within tau = 1.5 x the ground-truth spacing.
     root = generate_scene("tiny", tmp_path_factory.mktemp("scene") / "tiny", width=160, height=120)
     return DataParserConfig(data=root, test_every=0).setup()
+
+
+@pytest.fixture(scope="module")
+def tiny_turned(tiny, tmp_path_factory):
+    """The tiny scene in another COLMAP frame: turned by a random rotation, moved and scaled x1000
+    (cameras, sparse points, ground-truth surface and depths alike; camera-space normals unchanged)."""
+    source, turned = tiny.data_dir, tmp_path_factory.mktemp("turned") / "tiny"
+    shutil.copytree(source / "images", turned / "images")
+    shutil.copytree(source / "ground_truth" / "normal", turned / "ground_truth" / "normal")
+    q, _ = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))
+    rotation, shift, scale = q * np.sign(np.linalg.det(q)), np.array([40.0, -25.0, 7.0]), 1000.0
+    model = pycolmap.Reconstruction(str(source / "sparse" / "0"))
+    model.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), shift))
+    (turned / "sparse" / "0").mkdir(parents=True)
+    model.write_binary(str(turned / "sparse" / "0"))
+    surface = np.load(source / "ground_truth" / "surface_points.npy")
+    np.save(turned / "ground_truth" / "surface_points.npy", scale * surface @ rotation.T + shift)
+    (turned / "ground_truth" / "depth").mkdir()
+    for depth in (source / "ground_truth" / "depth").glob("*.npy"):
+        np.save(turned / "ground_truth" / "depth" / depth.name, scale * np.load(depth))
+    return DataParserConfig(data=turned, test_every=0).setup()
 
 
 def _gt_maps(dataset):
@@ -200,3 +224,36 @@ def test_ply_round_trip_and_unreadable_file(tmp_path):
         read_ply(tmp_path / "bad.ply")
     with pytest.raises(HicoError, match="not found"):
         read_ply(tmp_path / "missing.ply")
+
+
+def test_voxel_size_follows_the_scene_not_the_axes(tiny, tiny_turned):
+    """The default voxel (scene extent / 512) and tau are the same in normalised units whatever the
+    COLMAP frame: in COLMAP units both scale with the scene (x1000) and ignore its rotation and shift."""
+    assert scene_extent(tiny_turned) == pytest.approx(scene_extent(tiny), rel=1e-6)
+    points = tiny.points.to(torch.float64)
+    # the extent is a diameter of the points, not of one box: turning them about +z changes nothing
+    turn = torch.tensor([[0.6, -0.8, 0.0], [0.8, 0.6, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    spun = SimpleNamespace(points=(points @ turn.T).float(), cameras=tiny.cameras)
+    assert scene_extent(spun) == pytest.approx(scene_extent(tiny), rel=1e-6)
+    tau = gt_spacing_threshold(tiny.transform.points_to_colmap(tiny.gt_surface_points.double()))
+    tau_turned = gt_spacing_threshold(tiny_turned.transform.points_to_colmap(tiny_turned.gt_surface_points.double()))
+    assert tau_turned == pytest.approx(1000 * tau, rel=1e-4)
+
+
+@needs_open3d
+def test_mesh_f1_is_the_same_in_a_turned_moved_and_scaled_frame(tiny, tiny_turned, tmp_path):
+    """Meshing the same depth maps in two COLMAP frames related by a similarity (random rotation, shift,
+    x1000) scores the same against each frame's ground truth: fusion, voxel size and tau follow the scene.
+    (The normalised frames differ by a turn about +z, so the TSDF grids cut the surface differently;
+    what is left is that sampling difference.)"""
+    config = MeshExportConfig(min_component_triangles=100)
+    scores = []
+    for dataset, name in ((tiny, "a"), (tiny_turned, "b")):
+        path = write_ply(tmp_path / name / "mesh.ply", extract_mesh(_ExactDepthModel(dataset), dataset, config))
+        scores.append(surface_results(dataset, path))
+    original, turned = scores
+    assert original["surface_f1"] > 0.9, original
+    assert turned["surface_tau"] == pytest.approx(1000 * original["surface_tau"], rel=1e-4)
+    assert turned["surface_chamfer"] == pytest.approx(1000 * original["surface_chamfer"], rel=0.05)
+    for key in ("surface_f1", "surface_precision", "surface_recall"):
+        assert turned[key] == pytest.approx(original[key], abs=0.01), (key, original, turned)

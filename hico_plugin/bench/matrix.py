@@ -35,6 +35,8 @@ from hico_plugin.data.parser import FormatChoice
 from hico_plugin.engine import TrainerCallback, evaluate
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
+from hico_plugin.mesh import MeshExportConfig, extract_mesh, surface_results
+from hico_plugin.mesh.extract import default_voxel_size
 from hico_plugin.presets import HiCoTrainerConfig, all_presets
 
 ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hico-gs-max", "hico-gs-attn")
@@ -42,6 +44,9 @@ ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hic
 
 METRIC_KEYS = ("psnr", "psnr_cc", "ssim", "lpips", "depth_abs_rel", "normal_error_deg", "num_anchors", "num_gaussians", "fps")
 """Evaluation figures every cell records (None where unavailable, e.g. no ground-truth normals)."""
+SURFACE_KEYS = ("surface_f1", "surface_precision", "surface_recall", "surface_tau", "mesh_voxel")
+"""Mesh figures every cell records (None without --mesh, a ground-truth surface or a mesh); tau and
+the voxel edge are in the scene's COLMAP units."""
 
 
 @dataclass
@@ -77,6 +82,10 @@ class BenchConfig(InstantiateConfig):
     """Evaluate on at most this many test views (evenly spaced over the test split)."""
     lpips: Literal["vgg", "alex", "none"] = "alex"
     """LPIPS backbone at evaluation ("none" skips LPIPS)."""
+    mesh: bool = True
+    """Mesh every cell as hico-export ... mesh does by default and score it against the scene's
+    ground-truth surface as hico-eval does (mesh F1 / precision / recall), so a change that costs
+    geometry shows in the tables; scenes without a ground-truth surface are skipped."""
     output_dir: Path = Path("bench_out")
     """Where cells/, runs/, results.json and report.md go."""
     device: str = "auto"
@@ -134,7 +143,8 @@ def run_config(bench: BenchConfig, preset: str, scene: str, max_steps: int, seed
 
 def config_hash(config: HiCoTrainerConfig, bench: BenchConfig) -> str:
     """Short hash of everything that changes a cell's figures (the run config + how it is evaluated)."""
-    text = repr(dataclasses.replace(config, output_dir=Path("."))) + f"|eval_views={bench.max_eval_views}"
+    text = (repr(dataclasses.replace(config, output_dir=Path("."))) + f"|eval_views={bench.max_eval_views}"
+            + f"|mesh={bench.mesh}")
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
@@ -158,9 +168,9 @@ class CheckpointRecorder(TrainerCallback):
     """
 
     def __init__(self, timer: StageTimer, cells: dict[int, Path], base: dict[str, Any], max_eval_views: int,
-                 log: Callable[[str], None]):
+                 log: Callable[[str], None], mesh: bool = True):
         self.timer, self.cells, self.base = timer, cells, base
-        self.max_eval_views, self.log = max_eval_views, log
+        self.max_eval_views, self.log, self.mesh = max_eval_views, log, mesh
         self.trainer: Any = None
 
     def on_train_start(self, trainer: Any, step: int) -> None:
@@ -174,11 +184,13 @@ class CheckpointRecorder(TrainerCallback):
         with self.timer.paused():
             results = evaluate(trainer.model, trainer.dataset,
                                eval_indices(trainer.test_indices, self.max_eval_views), trainer.device)
+            if self.mesh:
+                results.update(self.surface(trainer.model, trainer.dataset))
         stage_ms = self.timer.mean_ms()
         model = trainer.model
         record = {**self.base, "budget": budget,
                   "wall_seconds": float(metrics.get("train_seconds", trainer.train_seconds)),
-                  **{key: _float(results.get(key)) for key in METRIC_KEYS},
+                  **{key: _float(results.get(key)) for key in METRIC_KEYS + SURFACE_KEYS},
                   "stage_ms": stage_ms, "step_ms": sum(stage_ms.values()),
                   # includes what no stage covers (batch loading, logging, warm-up): compare with step_ms
                   "wall_ms_per_step": 1e3 * float(metrics.get("train_seconds", trainer.train_seconds)) / budget,
@@ -186,12 +198,26 @@ class CheckpointRecorder(TrainerCallback):
                   "num_params": int(sum(p.numel() for p in model.parameters())),
                   "effects_on": sorted(n for n, c in getattr(model, "effect_choices", {}).items() if c.on)}
         write_text_atomic(self.cells[budget], json.dumps(record, indent=2, allow_nan=True) + "\n")
-        psnr = record["psnr"]
+        psnr, f1 = record["psnr"], record["surface_f1"]
         self.log(f"  {record['preset']} / {record['scene']} @ {budget} steps: PSNR "
-                 f"{psnr if psnr is None else round(psnr, 2)}, {record['wall_seconds']:.1f} s, "
+                 f"{psnr if psnr is None else round(psnr, 2)}, mesh F1 {f1 if f1 is None else round(f1, 3)}, "
+                 f"{record['wall_seconds']:.1f} s, "
                  f"{record['step_ms']:.0f} ms/step")
         if budget == max(self.cells):
             trainer.request_stop()  # the trainer's own full-test-split evaluation is not needed
+
+
+    def surface(self, model: Any, dataset: Any) -> dict[str, float]:
+        """hico-eval's surface entries for the mesh hico-export would write now, plus its voxel edge;
+        empty when the scene has no ground-truth surface or no mesh can be made yet (said in the log)."""
+        if dataset.gt_surface_points is None:
+            return {}
+        try:
+            mesh = extract_mesh(model, dataset, MeshExportConfig())
+        except HicoError as error:  # e.g. too early in training for any opaque pixel, or no Open3D
+            self.log(f"  mesh: not scored: {error}")
+            return {}
+        return {**surface_results(dataset, mesh), "mesh_voxel": default_voxel_size(dataset) / dataset.transform.scale}
 
 
 def _float(value: Any) -> float | None:
@@ -234,7 +260,7 @@ def run_matrix(bench: BenchConfig, log: Callable[[str], None] = print) -> list[d
         base = {"preset": run["preset"], "effects": run["effects"], "scene": run["scene"], "seed": run["seed"],
                 "config_hash": run["hash"],
                 "schedule": bench.schedule, "max_steps": run["max_steps"], "run_dir": str(run["run_dir"])}
-        recorder = CheckpointRecorder(timer, run["cells"], base, bench.max_eval_views, log)
+        recorder = CheckpointRecorder(timer, run["cells"], base, bench.max_eval_views, log, bench.mesh)
         trainer = config.setup(callbacks=[recorder])
         timer.device = trainer.device
         with timer.attach(trainer.model, trainer.optimizers):

@@ -114,21 +114,24 @@ def ablation_table(cells: list[dict[str, Any]]) -> str:
             mine, base, key = group[(preset, scene)], group[(presets[0], scene)], score[scene]
             row += [format_mean_std(values_of(mine, key)),
                     "" if preset == presets[0] else format_difference(values_of(mine, key), values_of(base, key)),
-                    format_mean_std(values_of(mine, "normal_error_deg"), 1)]
+                    format_mean_std(values_of(mine, "normal_error_deg"), 1),
+                    format_mean_std(values_of(mine, "surface_f1"), 3)]
         mine = [c for c in final if c["preset"] == preset]
         row += [format_mean_std(values_of(mine, "wall_seconds"), 1), format_mean_std(values_of(mine, "step_ms"), 0)]
         rows.append(row)
     header = ["method"]
     for scene in scenes:
-        header += [f"{scene} {_score_label(score[scene])}", f"Δ vs {presets[0]}", f"{scene} normal err (°)"]
+        header += [f"{scene} {_score_label(score[scene])}", f"Δ vs {presets[0]}", f"{scene} normal err (°)",
+                   f"{scene} mesh F1"]
     return _table(header + ["train time (s)", "ms / step"], rows)
 
 
 def accuracy_time_table(cells: list[dict[str, Any]]) -> str:
     header = ["scene", "method", "seed", "steps", "PSNR", "SSIM", "LPIPS", "depth AbsRel", "normal err (°)",
-              "anchors", "Gaussians", "wall (s)", "FPS", "Pareto"]
+              "mesh F1", "anchors", "Gaussians", "wall (s)", "FPS", "Pareto"]
     rows = [[c["scene"], c["preset"], str(c.get("seed", "–")), str(c["budget"]), _fmt(c["psnr"]), _fmt(c["ssim"], 3), _fmt(c["lpips"], 3),
-             _fmt(c["depth_abs_rel"], 3), _fmt(c["normal_error_deg"], 1), _fmt(c["num_anchors"], 0),
+             _fmt(c["depth_abs_rel"], 3), _fmt(c["normal_error_deg"], 1), _fmt(c.get("surface_f1"), 3),
+             _fmt(c["num_anchors"], 0),
              _fmt(c["num_gaussians"], 0), _fmt(c["wall_seconds"], 1), _fmt(c["fps"], 1),
              "★" if c.get("pareto") else ""] for c in cells]
     return _table(header, rows)
@@ -236,7 +239,20 @@ def effects_table(cells: list[dict[str, Any]]) -> str:
                    "wall ms / step", "parameters"], rows)
 
 
-def settings_lines(bench: dict[str, Any]) -> list[str]:
+def mesh_settings_line(bench: dict[str, Any], cells: list[dict[str, Any]]) -> str:
+    """How mesh F1 was measured (the rules and, per scene, the voxel edge and tau they gave)."""
+    if not bench.get("mesh"):
+        return "- mesh F1: off (--no-mesh)"
+    scored = {c["scene"]: c for c in cells if c.get("surface_f1") is not None}
+    per_scene = "; ".join(f"{scene}: voxel {_fmt(c['mesh_voxel'], 4)}, tau {_fmt(c['surface_tau'], 4)}"
+                          for scene, c in scored.items()) or "no scene has a ground-truth surface"
+    return ("- mesh F1: hico-export mesh defaults (TSDF of the training views' plane depth at full LOD, voxel = "
+            "scene extent / 512 with extent = 2 x the 99th percentile of the sparse points' distances from "
+            "their mean, truncation 4 voxels) scored as hico-eval does (F1 at tau = 1.5 x the mean ground-truth "
+            f"surface spacing), COLMAP units: {per_scene}")
+
+
+def settings_lines(bench: dict[str, Any], cells: list[dict[str, Any]]) -> list[str]:
     """The settings the matrix ran with, as a Markdown list, so a report shows what it answers."""
     data = bench.get("data")
     return [f"- presets: {', '.join(bench.get('presets', ()))}",
@@ -245,12 +261,13 @@ def settings_lines(bench: dict[str, Any]) -> list[str]:
             f"- budgets: {', '.join(map(str, bench.get('budgets', ())))} steps ({bench.get('schedule')} schedule)",
             f"- downscale: {bench.get('downscale')}; LPIPS: {bench.get('lpips')}; "
             f"eval views: at most {bench.get('max_eval_views')}; "
-            f"seeds: {', '.join(map(str, bench.get('seeds', ())))}"]
+            f"seeds: {', '.join(map(str, bench.get('seeds', ())))}",
+            mesh_settings_line(bench, cells)]
 
 
 def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
     cells, bench = results["cells"], results["bench"]
-    parts = ["# hico-bench report", "", *settings_lines(bench), "",
+    parts = ["# hico-bench report", "", *settings_lines(bench, cells), "",
              "Wall time is training time only (evaluation excluded).", "",
              "## Ablation (largest budget)", "",
              ("Mean ± std over seeds; Δ = difference to the first method ± its standard error, "

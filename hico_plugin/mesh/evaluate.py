@@ -49,14 +49,15 @@ def evaluate_surface(mesh: TriangleMesh, gt_points: Tensor | np.ndarray, spacing
     return surface_metrics(torch.from_numpy(samples), gt, tau)
 
 
-def surface_results(dataset: Any, mesh_path: str | Path) -> dict[str, float]:
-    """hico-eval's surface entries for the mesh file ``mesh_path`` (COLMAP frame, as hico-export
-    writes it) against ``dataset.gt_surface_points``: ``surface_precision``, ``surface_recall``,
-    ``surface_f1``, ``surface_chamfer`` and ``surface_tau`` (distances in COLMAP units). Empty when
-    the dataset has no ground-truth surface or the file does not exist."""
+def surface_results(dataset: Any, mesh: str | Path | TriangleMesh) -> dict[str, float]:
+    """hico-eval's (and hico-bench's) surface entries for ``mesh`` (COLMAP frame, as hico-export writes
+    it: a TriangleMesh or its PLY file) against ``dataset.gt_surface_points``: ``surface_precision``,
+    ``surface_recall``, ``surface_f1``, ``surface_chamfer`` and ``surface_tau`` (distances in COLMAP
+    units). Empty when the dataset has no ground-truth surface or the file does not exist."""
     gt = dataset.gt_surface_points
-    if gt is None or not Path(mesh_path).is_file():
+    if gt is None or not (isinstance(mesh, TriangleMesh) or Path(mesh).is_file()):
         return {}
-    metrics = evaluate_surface(read_ply(mesh_path), dataset.transform.points_to_colmap(gt.double()))
+    metrics = evaluate_surface(mesh if isinstance(mesh, TriangleMesh) else read_ply(mesh),
+                               dataset.transform.points_to_colmap(gt.double()))
     return {"surface_precision": metrics.precision, "surface_recall": metrics.recall, "surface_f1": metrics.f1,
             "surface_chamfer": metrics.chamfer, "surface_tau": metrics.threshold}

@@ -28,7 +28,8 @@ class MeshExportConfig(InstantiateConfig):
     depth: Literal["plane", "expected"] = "plane"
     """Depth to fuse: plane depth (DNGC's unbiased depth, the default) or alpha-normalised expected depth."""
     voxel_size: float | None = None
-    """TSDF voxel edge in COLMAP units; default the scene extent (robust sparse-point box diagonal) / 512."""
+    """TSDF voxel edge in COLMAP units; default the scene extent (twice the 99th percentile of the sparse
+    points' distances from their mean, so it follows the scene, not the axes) / 512."""
     sdf_trunc: float | None = None
     """TSDF truncation distance in COLMAP units; default 4 x voxel size."""
     max_depth: float | None = None
@@ -71,16 +72,23 @@ class MeshExportConfig(InstantiateConfig):
 
 
 def scene_extent(dataset: Any) -> float:
-    """Diagonal (normalised units) of the 1st-99th percentile box of the sparse points (of the camera
-    centres when there are too few points)."""
+    """Robust diameter (normalised units) of the sparse points (of the camera centres when there are too
+    few points): twice the 99th percentile of their distances from their mean. Distances from a mean
+    follow any rotation, shift and scale of the scene, so the voxel size derived from it does too; the
+    diagonal of an axis-aligned box would change with the scene's heading (up to sqrt(2) for a flat
+    city turned 45 degrees about its up axis)."""
     points = dataset.points if len(dataset.points) >= 10 else dataset.cameras.centers
-    points = points.to(torch.float64)
-    percentiles = torch.tensor([0.01, 0.99], dtype=torch.float64)
-    box = torch.quantile(points[:: max(1, len(points) // 1_000_000)], percentiles, dim=0)  # quantile's size limit
-    extent = float((box[1] - box[0]).norm())
+    points = points.to(torch.float64)[:: max(1, len(points) // 1_000_000)]  # quantile's size limit
+    radii = (points - points.mean(dim=0)).norm(dim=-1)
+    extent = 2 * float(torch.quantile(radii, 0.99))
     if not extent > 0:
         raise HicoError("mesh: cannot derive a voxel size from the scene (its points span no volume); set --voxel-size")
     return extent
+
+
+def default_voxel_size(dataset: Any) -> float:
+    """The TSDF voxel edge (normalised units) when --voxel-size is not given: scene extent / 512."""
+    return scene_extent(dataset) / 512
 
 
 @torch.no_grad()
@@ -104,7 +112,7 @@ def extract_mesh(model: Any, dataset: Any, config: MeshExportConfig) -> Triangle
     indices = [int(i) for i in dataset.train_indices]
     if not indices:
         raise HicoError("mesh: the dataset has no training views to render")
-    voxel = config.voxel_size * scale if config.voxel_size is not None else scene_extent(dataset) / 512
+    voxel = config.voxel_size * scale if config.voxel_size is not None else default_voxel_size(dataset)
     trunc = config.sdf_trunc * scale if config.sdf_trunc is not None else 4 * voxel
     max_depth = config.max_depth * scale if config.max_depth is not None else dataset.camera_distance_range()[1]
     depths, colors, alphas = render_depths(model, dataset, indices, config.depth)
