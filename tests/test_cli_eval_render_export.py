@@ -144,10 +144,10 @@ def test_exported_gaussians_render_like_the_model(run_dir, tmp_path):
         # data called for no sky (tiny has none)
         rgb = (run.model.over_sky(out, camera) if run.model.sky is not None
                else out.rgb + (1.0 - out.alpha) * run.model.background)
-    # The float32 round trip through the rotated COLMAP frame moves means by ~1e-7, which flips a few
-    # pixels across the rasterizer's cut-offs (a 1e-7 jitter alone gives a max of ~6e-3), so the mean
-    # decides: correct 2.0e-6; quaternions left in COLMAP's axes 2.6e-5 (tiny is tilted by only 0.5
-    # degrees); a wxyz <-> xyzw mix-up 3.2e-3 (max 3.3e-2).
+    # The float32 round trip through the COLMAP frame moves means by ~1e-7, which flips a few pixels
+    # across the rasterizer's cut-offs (a 1e-7 jitter alone gives a max of ~6e-3), so the mean decides:
+    # correct 2.0e-6; a wxyz <-> xyzw mix-up 3.2e-3 (max 3.3e-2). Tiny loads unrotated (its cameras are
+    # level), so the quaternions' frame mapping is tested with a random rotation in test_export.
     error = (rgb - expected.rgb).abs()
     assert error.mean() < 5e-6 and error.max() < 1e-2
 

@@ -15,7 +15,7 @@ from hico_plugin.cli.train import parse as parse_train
 from hico_plugin.cli.train import train
 from hico_plugin.analysis.effects import up_vector
 from hico_plugin.data import DATA_FORMATS, DataParserConfig
-from hico_plugin.data.transform import cameras_up
+from hico_plugin.data.transform import scene_up
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes.generate import generate_scene
 
@@ -158,10 +158,10 @@ def test_scene_is_oriented_up_from_the_cameras(tmp_path):
     original, rotated = DataParserConfig(data=scene).setup(), DataParserConfig(data=turned).setup()
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     for dataset in (original, rotated):
-        assert torch.allclose(cameras_up(dataset.cameras.viewmats), up, atol=1e-5)
+        assert torch.allclose(scene_up(dataset.cameras.viewmats), up, atol=1e-5)
         assert np.allclose(up_vector(dataset), up.numpy(), atol=1e-5)
     assert torch.allclose(original.cameras.centers[:, 2], rotated.cameras.centers[:, 2], atol=1e-5)
     assert torch.allclose(original.points[:, 2], rotated.points[:, 2], atol=1e-5)
     # without --orient the turned scene keeps its tilted up
     tilted = DataParserConfig(data=turned, orient=False).setup()
-    assert float(cameras_up(tilted.cameras.viewmats) @ up) < 0.99
+    assert float(scene_up(tilted.cameras.viewmats) @ up) < 0.99

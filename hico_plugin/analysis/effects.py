@@ -9,7 +9,7 @@ The model simulates only what this finds (``--model.effects auto``):
   (alternating medians, mean gain 0) per channel. Formats without tracks: every point is projected
   into every view and kept where it is the nearest point of its coarse depth-buffer cell.
 - **sky** — image cells (``SKY_CELL_PX`` square) with no sparse point projected into them, above
-  the horizon of the cameras' mean up vector, smooth and bright: open sky or an unbounded background
+  the horizon of the scene's up vector, smooth and bright: open sky or an unbounded background
   the Gaussians cannot represent. A point occluded in a view still projects onto a surface pixel,
   never onto sky, so this test needs no visibility.
 - **noise** — per-image sensor noise (Immerkær's Laplacian estimator on the smoothest cells).
@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import torch
 
-from hico_plugin.data.transform import cameras_up
+from hico_plugin.data.transform import scene_up
 from hico_plugin.data.undistort import PINHOLE_MODELS
 
 # exposure: a photo whose exposure differs from the mean by more than this (robust std over photos,
@@ -49,7 +49,7 @@ MAX_POINTS = 20_000  # points used for the gains (strided); thousands already pi
 # sky: image cells of 1/SKY_CELLS_PER_SIDE of the shorter image side (>= 4 px), so a thin band of sky
 # still fills whole cells at low resolution; a cell is sky-like when no sparse point falls in it,
 SKY_CELLS_PER_SIDE = 30
-# it is connected through such cells to the image edge facing the cameras' mean up vector (edge
+# it is connected through such cells to the image edge facing the scene's up vector (edge
 # cells whose centre ray lies above the view's median elevation) — not "elevation > 0": a finite
 # ground lets sky show below the true horizon (city-block's top rows look 8 degrees down at sky),
 # its mean absolute colour gradient, after a sigma-1.5 px blur that removes sensor noise, is below
@@ -307,8 +307,8 @@ def _exposure_finding(gains: np.ndarray) -> EffectFinding:
 
 
 def up_vector(dataset: Any) -> np.ndarray:
-    """The cameras' mean up direction [3] in the dataset's (normalised, so z-up when oriented) frame."""
-    return cameras_up(dataset.cameras.viewmats).numpy()
+    """The scene's up direction [3] (data.transform.scene_up) in the dataset's (normalised, so z-up when oriented) frame."""
+    return scene_up(dataset.cameras.viewmats).numpy()
 
 
 def sky_cells(dataset: Any, view: int, points: np.ndarray, up: np.ndarray) -> np.ndarray:

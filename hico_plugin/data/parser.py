@@ -78,8 +78,9 @@ class DataParserConfig(InstantiateConfig):
     """Centre on the mean camera centre and scale the farthest camera to distance 1, so the scene's
     units (mm or km) do not matter."""
     orient: bool = True
-    """With --normalize: rotate the scene so the cameras' mean up direction is +z (z-up whatever the
-    source's axes; the sky and ground effects and viewer assume it). Outputs are mapped back."""
+    """With --normalize: rotate the scene so its vertical (the direction perpendicular to the cameras'
+    right axes, level in hand-held and drone photos) is +z, whatever the source's axes (the sky and
+    ground effects and the viewer assume z-up). Outputs are mapped back."""
     cache_mb: int = 2048
     """Budget of the in-memory cache of decoded images (LRU, in MB)."""
     cache_dir: Optional[Path] = None

@@ -1,7 +1,7 @@
 """The scene normalisation: COLMAP's world frame <-> the normalised frame training works in.
 
-``world_normalised = rotation @ (world_colmap - centre) * scale``: the rotation turns the cameras'
-mean up direction to +z, the centre and scale make the cameras' spread a unit sphere, so a model in
+``world_normalised = rotation @ (world_colmap - centre) * scale``: the rotation turns the scene's
+vertical (found from the cameras, ``scene_up``) to +z, the centre and scale make the cameras' spread a unit sphere, so a model in
 millimetres or kilometres, z-up or y-down, trains the same. Camera frames are scaled with the world
 so viewmats stay rigid: a viewmat ``[R | t]`` in COLMAP's frame becomes
 ``[R @ rotation.T | scale * (R @ centre + t)]``, and camera-space depths are multiplied by ``scale``
@@ -16,10 +16,30 @@ import torch
 from torch import Tensor
 
 
-def cameras_up(viewmats: Tensor) -> Tensor:
-    """The cameras' mean up direction [3] (unit, float64) from world->camera viewmats [C, 4, 4]
-    (OpenCV axes: a camera's up is its -y axis, row 1 of R negated)."""
-    up = -viewmats[:, 1, :3].to(torch.float64).mean(dim=0)
+# RMS share of the cameras' right axes off their mean direction below which their headings are too
+# alike to fix the vertical (about 10 degrees; nerfstudio's "vertical" orientation uses the same bound)
+MIN_HEADING_SPREAD = 0.17
+
+
+def scene_up(viewmats: Tensor) -> Tensor:
+    """The scene's up direction [3] (unit, float64) from world->camera viewmats [C, 4, 4] (OpenCV axes:
+    row 0 of R is a camera's right axis, row 1 negated its up axis).
+
+    Photos are taken level: a camera's right axis stays horizontal when it pitches down at a building,
+    while its up axis tilts with the pitch, so the cameras' mean up leans toward where they look. The
+    vertical is the direction most orthogonal to every right axis, the right-singular vector of the
+    stacked right axes with the smallest singular value (nerfstudio's "vertical" orientation). When the
+    right axes are nearly parallel (every photo faces one way) that direction is not fixed by them, and
+    the mean up made orthogonal to the mean right axis is used. The sign follows the mean up."""
+    viewmats = viewmats.to(torch.float64)
+    rights, mean_up = viewmats[:, 0, :3], -viewmats[:, 1, :3].mean(dim=0)
+    _, singular, vh = torch.linalg.svd(rights, full_matrices=True)
+    if len(singular) >= 2 and float(singular[1]) > MIN_HEADING_SPREAD * len(rights) ** 0.5:
+        up = vh[2]
+    else:
+        right = rights.mean(dim=0) / rights.mean(dim=0).norm().clamp_min(1e-12)
+        up = mean_up - (mean_up @ right) * right
+    up = up if float(up @ mean_up) >= 0 else -up
     return up / up.norm().clamp_min(1e-12)
 
 
@@ -52,7 +72,7 @@ class SceneTransform:
     @classmethod
     def from_cameras(cls, viewmats: Tensor, fallback_points: Tensor | None = None, orient: bool = True) -> SceneTransform:
         """The scene normalisation, decided here only (nerfstudio's auto-orient and auto-scale):
-        rotate the cameras' mean up to +z (``orient``), centre on the mean camera centre, scale so
+        rotate the scene's up (``scene_up``) to +z (``orient``), centre on the mean camera centre, scale so
         the farthest camera centre lies at distance 1 (``viewmats``: [C, 4, 4] world->camera). With
         one camera (or all at one spot) the spread of ``fallback_points`` [P, 3] sets the scale."""
         viewmats = viewmats.to(torch.float64)
@@ -62,7 +82,7 @@ class SceneTransform:
         radius = float((centres - centre).norm(dim=-1).max())
         if radius <= 1e-9 and fallback_points is not None and len(fallback_points) > 0:
             radius = float((fallback_points.to(torch.float64) - centre).norm(dim=-1).median())
-        rotation = rotation_to_z(cameras_up(viewmats)) if orient else torch.eye(3, dtype=torch.float64)
+        rotation = rotation_to_z(scene_up(viewmats)) if orient else torch.eye(3, dtype=torch.float64)
         return cls(centre, 1.0 / radius if radius > 1e-9 else 1.0, rotation)
 
     def points_from_colmap(self, points: Tensor) -> Tensor:

@@ -1,0 +1,64 @@
+"""The scene's vertical (data.transform.scene_up): exact for level cameras that pitch down at a scene
+from one side, close under hand-held roll, defined when every photo faces one way or there is one."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from hico_plugin.data.transform import SceneTransform, scene_up
+from hico_plugin.scenes.orbits import look_at
+
+
+def _arc(degrees: float, count: int = 12, height: float = 2.0) -> np.ndarray:
+    """Level cameras on an arc of ``degrees`` around the origin at ``height``, all looking down at it."""
+    angles = np.radians(np.linspace(0.0, degrees, count))
+    eyes = np.stack([4 * np.cos(angles), 4 * np.sin(angles), np.full(count, height)], axis=-1)
+    return look_at(eyes, np.zeros_like(eyes))
+
+
+def _turn(viewmats: np.ndarray, rotation: np.ndarray) -> torch.Tensor:
+    """The same cameras in a world turned by ``rotation`` (world->camera: R' = R @ rotation.T)."""
+    out = viewmats.copy()
+    out[:, :3, :3] = viewmats[:, :3, :3] @ rotation.T
+    return torch.from_numpy(out)
+
+
+def _angle_deg(a: torch.Tensor, b: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, abs(float(a @ torch.from_numpy(b))))))
+
+
+def test_level_cameras_on_one_side_give_the_exact_vertical_where_their_mean_up_leans():
+    viewmats = _arc(90.0)  # a quarter circle pitched ~27 degrees down: the mean up leans toward the scene
+    q, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))
+    rotation = q * np.sign(np.linalg.det(q))
+    turned = _turn(viewmats, rotation)
+    mean_up = -turned[:, 1, :3].mean(dim=0)
+    assert _angle_deg(mean_up / mean_up.norm(), rotation @ [0.0, 0.0, 1.0]) > 10.0
+    up = scene_up(turned)
+    assert _angle_deg(up, rotation @ [0.0, 0.0, 1.0]) < 1e-6
+    assert float(up @ torch.from_numpy(rotation @ [0.0, 0.0, 1.0])) > 0  # up, not down
+    # the oriented scene is z-up
+    oriented = SceneTransform.from_cameras(turned).viewmats_from_colmap(turned)
+    assert _angle_deg(scene_up(oriented), np.array([0.0, 0.0, 1.0])) < 1e-6
+
+
+def test_hand_held_roll_moves_the_vertical_by_less_than_the_roll():
+    viewmats = _arc(360.0, count=40)
+    rolls = np.radians(np.random.default_rng(1).normal(0.0, 3.0, size=len(viewmats)))  # 3 degrees of roll
+    rolled = viewmats.copy()
+    for i, roll in enumerate(rolls):  # turn each camera about its own optical axis
+        c, s = math.cos(roll), math.sin(roll)
+        rolled[i, :3, :] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ viewmats[i, :3, :]
+    assert _angle_deg(scene_up(torch.from_numpy(rolled)), np.array([0.0, 0.0, 1.0])) < 1.0
+
+
+def test_one_heading_or_one_camera_falls_back_to_the_mean_up_made_level():
+    forward = _arc(0.0, count=5)  # every camera faces the same way: the right axes fix only one direction
+    up = scene_up(torch.from_numpy(forward))
+    right = torch.from_numpy(forward[0, 0, :3])
+    assert abs(float(up @ right)) < 1e-9 and float(up[2]) > 0.8
+    single = scene_up(torch.from_numpy(forward[:1]))
+    assert torch.allclose(single, up, atol=1e-9) and torch.isfinite(single).all()
