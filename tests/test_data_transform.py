@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from hico_plugin.data.transform import SceneTransform, scene_up
+from hico_plugin.data.transform import SceneTransform, scene_heading, scene_up
 from hico_plugin.scenes.orbits import look_at
 
 
@@ -62,3 +62,36 @@ def test_one_heading_or_one_camera_falls_back_to_the_mean_up_made_level():
     assert abs(float(up @ right)) < 1e-9 and float(up[2]) > 0.8
     single = scene_up(torch.from_numpy(forward[:1]))
     assert torch.allclose(single, up, atol=1e-9) and torch.isfinite(single).all()
+
+
+def _walls(heading_deg: float, seed: int = 0) -> torch.Tensor:
+    """Noisy points on the walls of a block of houses whose streets run at ``heading_deg`` about +z, a
+    fifth of the houses turned off the grid by up to 20 degrees, and on the ground."""
+    rng = np.random.default_rng(seed)
+    points = []
+    for i in range(5):
+        for j in range(5):
+            turn = math.radians(heading_deg + (rng.uniform(-20, 20) if rng.uniform() < 0.2 else 0.0))
+            c, s = math.cos(turn), math.sin(turn)
+            for side in range(4):
+                t = rng.uniform(-1, 1, 60)
+                z = rng.uniform(0, 2, 60)
+                x, y = (t, np.full(60, 1.0 if side < 2 else -1.0)) if side % 2 == 0 else (np.full(60, 1.0 if side < 2 else -1.0), t)
+                local = np.stack([x, y], axis=1)
+                world = local @ np.array([[c, s], [-s, c]]) + np.array([5.0 * i, 5.0 * j]) @ np.array([[math.cos(math.radians(heading_deg)), math.sin(math.radians(heading_deg))], [-math.sin(math.radians(heading_deg)), math.cos(math.radians(heading_deg))]])
+                points.append(np.concatenate([world, z[:, None]], axis=1))
+    ground = np.concatenate([rng.uniform(-3, 23, (1500, 2)), np.zeros((1500, 1))], axis=1)
+    cloud = np.concatenate(points + [ground]) + rng.normal(0.0, 0.01, (len(ground) + 60 * 100, 3))
+    return torch.from_numpy(cloud)
+
+
+def test_heading_turns_the_walls_onto_the_axes_whatever_the_source_heading():
+    for heading in (0.0, 17.0, 30.0, -41.0):
+        found = math.degrees(scene_heading(_walls(heading)))
+        assert abs((found - heading + 45.0) % 90.0 - 45.0) < 0.5, (heading, found)
+    # no walls, or walls at every heading: no turn
+    blob = torch.from_numpy(np.random.default_rng(2).normal(size=(3000, 3)))
+    assert scene_heading(blob) == 0.0
+    ring = np.linspace(0, 2 * math.pi, 4000, endpoint=False)
+    tower = torch.from_numpy(np.stack([np.cos(ring), np.sin(ring), np.random.default_rng(3).uniform(0, 5, 4000)], axis=1))
+    assert scene_heading(tower) == 0.0

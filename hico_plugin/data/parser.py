@@ -81,6 +81,11 @@ class DataParserConfig(InstantiateConfig):
     """With --normalize: rotate the scene so its vertical (the direction perpendicular to the cameras'
     right axes, level in hand-held and drone photos) is +z, whatever the source's axes (the sky and
     ground effects and the viewer assume z-up). Outputs are mapped back."""
+    orient_method: Literal["manhattan", "vertical", "up"] = "manhattan"
+    """How --orient turns the scene: "vertical", its vertical (perpendicular to the cameras' right axes,
+    nerfstudio's name) to +z; "manhattan", that and its walls (the dominant vertical planes of the
+    sparse points) onto x and y, so the anchor grid runs along them whatever the source's axes; "up",
+    the cameras' mean up to +z (it leans toward where they look; how runs before 2026-11-25 were turned)."""
     cache_mb: int = 2048
     """Budget of the in-memory cache of decoded images (LRU, in MB)."""
     cache_dir: Optional[Path] = None
@@ -108,6 +113,8 @@ class DataParserConfig(InstantiateConfig):
             raise HicoError(f"--test-every: expected 0 (no test split) or a positive number, got {self.test_every}")
         if self.split not in ("interleaved", "extrapolate"):
             raise HicoError(f"--split: expected interleaved or extrapolate, got '{self.split}'")
+        if self.orient_method not in ("manhattan", "vertical", "up"):
+            raise HicoError(f"--orient-method: expected manhattan, vertical or up, got '{self.orient_method}'")
 
     def parse(self, announce: bool = True) -> Dataset:
         """Read, check and normalise the dataset; images stay on disk until first used. The notes the
@@ -142,7 +149,8 @@ class DataParserConfig(InstantiateConfig):
         points_world = torch.from_numpy(record.points)
         transform = SceneTransform.identity()
         if self.normalize:
-            transform = SceneTransform.from_cameras(viewmats_world, fallback_points=points_world, orient=self.orient)
+            transform = SceneTransform.from_cameras(viewmats_world, points=points_world, orient=self.orient,
+                                                    orient_method=self.orient_method)
         pinholes = [sources[camera_id].pinhole for camera_id in record.camera_ids]
         cameras = Cameras(
             viewmats=transform.viewmats_from_colmap(viewmats_world).to(torch.float32),

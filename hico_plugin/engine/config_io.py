@@ -38,10 +38,10 @@ _ENUM_TAG = "!enum:"
 # Config classes that became plain mappings; config.yml files of runs trained before still load.
 _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a {name: LossConfig} mapping
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
-# field gets the value that reproduces the run (its scene frame was not rotated; its anchors were not
-# kept nested), not today's default.
+# field gets the value that reproduces the run (its scene frame was not rotated, or rotated by the
+# cameras' mean up; its anchors were not kept nested), not today's default.
 _ADDED_FIELDS = {
-    "hico_plugin.data.parser.DataParserConfig": {"orient": False},
+    "hico_plugin.data.parser.DataParserConfig": {"orient": False, "orient_method": "up"},
     "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False},
 }
 
