@@ -9,15 +9,13 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_data import write_dataset  # noqa: E402
+from hico_plugin.scenes.ring_dataset import write_ring_dataset
 
 ENV = {**os.environ, "HICO_NO_FUSED": os.environ.get("HICO_NO_FUSED", "1")}
 BIN = Path(sys.executable).parent
@@ -65,7 +63,7 @@ def main(work: Path) -> None:
     for label, name in (("absolute image name", "/etc/hostname"), ("'../' image name", "../escape.png")):
         data = work / f"names_{name.count('.')}"
         shutil.rmtree(data, ignore_errors=True)
-        write_dataset(data, text=True)
+        write_ring_dataset(data, text=True)
         images_txt = data / "sparse" / "0" / "images.txt"
         images_txt.write_text(images_txt.read_text().replace("view_001.png", name))
         row(f"{label} in sparse/0, hico-inspect", run([BIN / "hico-inspect", str(data)]))
@@ -94,7 +92,6 @@ def main(work: Path) -> None:
 
     sig_dir = work / "sigterm"
     shutil.rmtree(sig_dir, ignore_errors=True)
-    start = time.perf_counter()
     proc = subprocess.Popen([BIN / "hico-train", "hico-gs-lite", "--scene", "tiny", "--max-steps", "400", "--vis", "none",
                              "--progress", "none", "--log-every", "1", "--output-dir", str(sig_dir)],
                             stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=ENV)
@@ -137,13 +134,13 @@ def main(work: Path) -> None:
                                 ("principal point far outside", [32.0, 32.0, 900.0, 15.0], (40, 30)), ("1x1-pixel images", None, (1, 1))):
         data = work / f"cam_{label.replace(' ', '_')}"
         shutil.rmtree(data, ignore_errors=True)
-        write_dataset(data, params=params, size=size)
+        write_ring_dataset(data, params=params, size=size)
         row(f"{label}, hico-train", run([BIN / "hico-train", "hico-gs-lite", "--data", str(data), "--max-steps", "4", "--vis", "none",
                                          "--progress", "none", "--output-dir", str(work / "r_cam")]))
 
     data = work / "trunc_test"
     shutil.rmtree(data, ignore_errors=True)
-    written = write_dataset(data, num_images=9)
+    written = write_ring_dataset(data, num_images=9)
     test_image = data / "images" / written["names"][0]  # index 0: a test view (--test-every 8)
     test_image.write_bytes(test_image.read_bytes()[:-200])
     out = work / "r_trunc"
@@ -155,7 +152,7 @@ def main(work: Path) -> None:
     row("truncated image, hico-inspect", run([BIN / "hico-inspect", str(data)]))
     data2 = work / "size_mismatch"
     shutil.rmtree(data2, ignore_errors=True)
-    names = write_dataset(data2)["names"]
+    names = write_ring_dataset(data2)["names"]
     import cv2
     import numpy as np
     cv2.imwrite(str(data2 / "images" / names[2]), np.zeros((30, 43, 3), np.uint8))

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from hico_plugin.bench.analysis import (
+from hico_plugin.bench.run_features import (
     adjacent_distances,
     analyze_features,
     cross_level_distance,

@@ -14,7 +14,7 @@ from hico_plugin.bench import (
     pareto_front,
     write_outputs,
 )
-from hico_plugin.bench.timing import STAGES
+from hico_plugin.bench.stage_timer import STAGES
 from hico_plugin.cli import analyze as analyze_cli
 from hico_plugin.cli import bench as bench_cli
 from hico_plugin.errors import HicoError

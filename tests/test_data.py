@@ -6,90 +6,16 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pycolmap
 import pytest
 import torch
 
 from hico_plugin.data import DataParserConfig, SceneTransform
 from hico_plugin.data.cache import ByteLRUCache
 from hico_plugin.data.dataset import linear_quantiles
-
-WIDTH, HEIGHT = 40, 30
-
-
-def look_at(centre: np.ndarray, target: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """[3, 4] cam_from_world of a camera at ``centre`` looking at ``target`` (OpenCV axes, z up)."""
-    forward = np.asarray(target) - centre
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])
-    return np.concatenate([rotation, -rotation @ centre[:, None]], axis=1)
-
-
-def write_dataset(
-    root: Path,
-    *,
-    model: str = "PINHOLE",
-    params: list[float] | None = None,
-    num_images: int = 6,
-    size: tuple[int, int] = (WIDTH, HEIGHT),
-    text: bool = False,
-    num_points: int = 40,
-    write_images: bool = True,
-    seed: int = 0,
-    edit=None,
-) -> dict:
-    """A small COLMAP dataset in ``root``: one shared camera, cameras on a ring looking at the origin,
-    random points near the origin, random PNGs; ``edit(reconstruction)`` may spoil the model before it
-    is written. Returns what was written (COLMAP frame)."""
-    rng = np.random.default_rng(seed)
-    width, height = size
-    camera = pycolmap.Camera.create_from_model_name(1, model, 0.8 * width, width, height)
-    if params is not None:
-        camera.params = params
-    reconstruction = pycolmap.Reconstruction()
-    reconstruction.add_camera_with_trivial_rig(camera)
-    names, poses = [], []
-    for i in range(num_images):
-        angle = 2 * np.pi * i / num_images
-        pose = look_at(
-            np.array([4 * np.cos(angle) + 1.0, 4 * np.sin(angle) - 2.0, 1.5]), np.array([1.0, -2.0, 0.0])
-        )
-        name = f"view_{i:03d}.png"
-        reconstruction.add_image_with_trivial_frame(
-            pycolmap.Image(name=name, camera_id=1, image_id=i + 1), pycolmap.Rigid3d(pose)
-        )
-        names.append(name)
-        poses.append(pose)
-    points = rng.uniform(-1, 1, (num_points, 3)) + np.array([1.0, -2.0, 0.0])
-    colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
-    for xyz, color in zip(points, colors):
-        reconstruction.add_point3D(xyz, pycolmap.Track(), color)
-    if edit is not None:
-        edit(reconstruction)
-    model_dir = root / "sparse" / "0"
-    model_dir.mkdir(parents=True)
-    (reconstruction.write_text if text else reconstruction.write_binary)(str(model_dir))
-    (root / "images").mkdir()
-    images = {}
-    if write_images:
-        for name in names:
-            images[name] = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
-            cv2.imwrite(str(root / "images" / name), images[name][..., ::-1])
-    return {
-        "names": names,
-        "poses": np.array(poses).reshape(-1, 3, 4),
-        "points": points,
-        "colors": colors,
-        "images": images,
-        "camera": camera,
-    }
-
+from hico_plugin.scenes.ring_dataset import HEIGHT, WIDTH, write_ring_dataset
 
 def test_pinhole_binary_model_loads_normalised(tmp_path):
-    written = write_dataset(tmp_path, num_images=10)
+    written = write_ring_dataset(tmp_path, num_images=10)
     dataset = DataParserConfig(data=tmp_path).setup()
 
     assert dataset.image_names == written["names"]
@@ -129,7 +55,7 @@ def test_pinhole_binary_model_loads_normalised(tmp_path):
 
 
 def test_legacy_text_model_simple_pinhole(tmp_path):
-    write_dataset(tmp_path, model="SIMPLE_PINHOLE", text=True, num_images=4)
+    write_ring_dataset(tmp_path, model="SIMPLE_PINHOLE", text=True, num_images=4)
     for extra in ("rigs.txt", "frames.txt"):  # a COLMAP < 3.12 model has neither
         (tmp_path / "sparse" / "0" / extra).unlink()
     dataset = DataParserConfig(data=tmp_path, test_every=0, normalize=False).setup()
@@ -139,14 +65,14 @@ def test_legacy_text_model_simple_pinhole(tmp_path):
 
 
 def test_explicit_test_names(tmp_path):
-    written = write_dataset(tmp_path)
+    written = write_ring_dataset(tmp_path)
     dataset = DataParserConfig(data=tmp_path, test_names=(written["names"][4], written["names"][1])).setup()
     assert dataset.test_indices.tolist() == [1, 4]
     assert dataset.train_indices.tolist() == [0, 2, 3, 5]
 
 
 def test_downscale_resizes_on_load_or_reads_images_n(tmp_path):
-    write_dataset(tmp_path)
+    write_ring_dataset(tmp_path)
     full = DataParserConfig(data=tmp_path).setup()
     half = DataParserConfig(data=tmp_path, downscale=2).setup()
     assert half.image(1).shape == (HEIGHT // 2, WIDTH // 2, 3)
@@ -161,7 +87,7 @@ def test_downscale_resizes_on_load_or_reads_images_n(tmp_path):
 
 
 def test_image_stored_at_exact_downscale_is_accepted(tmp_path):
-    written = write_dataset(tmp_path)
+    written = write_ring_dataset(tmp_path)
     name = written["names"][0]
     cv2.imwrite(str(tmp_path / "images" / name), np.full((HEIGHT // 2, WIDTH // 2, 3), 50, np.uint8))
     dataset = DataParserConfig(data=tmp_path).setup()
@@ -169,7 +95,7 @@ def test_image_stored_at_exact_downscale_is_accepted(tmp_path):
 
 
 def test_masks_ground_truth_and_metadata(tmp_path):
-    written = write_dataset(tmp_path)
+    written = write_ring_dataset(tmp_path)
     name = written["names"][1]
     (tmp_path / "masks").mkdir()
     mask = np.zeros((HEIGHT, WIDTH), np.uint8)
@@ -227,7 +153,7 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model, monkeypatc
     monkeypatch.setenv("XDG_CACHE_HOME", str(user_cache))
     params, opencv_coefficients = DISTORTED[model]
     size = (80, 60)
-    written = write_dataset(tmp_path, model=model, params=params, size=size, num_images=2, write_images=False)
+    written = write_ring_dataset(tmp_path, model=model, params=params, size=size, num_images=2, write_images=False)
     # Render each distorted image independently of the parser: OpenCV's undistortPoints gives the
     # normalised ray of every distorted pixel (OpenCV's pixel centres are integers, COLMAP's +0.5).
     camera = written["camera"]
@@ -270,7 +196,7 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model, monkeypatc
 def test_opencv_undistortion_matches_cv2_undistort_points(tmp_path):
     """A single bright pixel lands where cv2.undistortPoints sends it."""
     params, coefficients = DISTORTED["OPENCV"]
-    written = write_dataset(
+    written = write_ring_dataset(
         tmp_path, model="OPENCV", params=params, size=(80, 60), num_images=2, write_images=False
     )
     spot = np.zeros((60, 80, 3), np.uint8)
@@ -292,7 +218,7 @@ def test_opencv_undistortion_matches_cv2_undistort_points(tmp_path):
 
 # --------------------------------------------------------------------------- extents and caches
 def test_camera_distance_range_matches_slow_reference(tmp_path):
-    write_dataset(tmp_path, num_images=9, num_points=300)
+    write_ring_dataset(tmp_path, num_images=9, num_points=300)
     dataset = DataParserConfig(data=tmp_path).setup()
     centres = dataset.cameras.centers.double().numpy()[dataset.train_indices.numpy()]
     points = dataset.points.double().numpy()
@@ -308,7 +234,7 @@ def test_camera_distance_range_matches_slow_reference(tmp_path):
 
 
 def test_image_cache_is_bounded_by_bytes(tmp_path):
-    write_dataset(tmp_path)
+    write_ring_dataset(tmp_path)
     one_image = HEIGHT * WIDTH * 3
     dataset = DataParserConfig(data=tmp_path, cache_mb=1).setup()
     dataset.cache.max_bytes = 2 * one_image  # room for two decoded images
@@ -390,7 +316,7 @@ def test_linear_quantiles_match_torch_quantile():
 def test_undistorted_images_are_cached_in_the_user_cache_not_the_dataset(tmp_path, monkeypatch):
     params, _ = DISTORTED["SIMPLE_RADIAL"]
     root = tmp_path / "dataset"
-    write_dataset(root, model="SIMPLE_RADIAL", params=params, size=(80, 60), num_images=2)
+    write_ring_dataset(root, model="SIMPLE_RADIAL", params=params, size=(80, 60), num_images=2)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user_cache"))
     dataset = DataParserConfig(data=root, test_every=0).setup()
     dataset.image(0)

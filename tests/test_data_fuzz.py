@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_data import write_dataset
+from hico_plugin.scenes.ring_dataset import write_ring_dataset
 
 from hico_plugin.data import DataParserConfig
 from hico_plugin.errors import HicoError
@@ -27,8 +27,8 @@ FUZZ = settings(max_examples=int(os.environ.get("HICO_FUZZ_EXAMPLES", "200")), d
 @pytest.fixture(scope="module")
 def templates(tmp_path_factory):
     root = tmp_path_factory.mktemp("fuzz")
-    write_dataset(root / "bin", num_images=4, num_points=12)
-    write_dataset(root / "txt", num_images=4, num_points=12, text=True)
+    write_ring_dataset(root / "bin", num_images=4, num_points=12)
+    write_ring_dataset(root / "txt", num_images=4, num_points=12, text=True)
     return root
 
 

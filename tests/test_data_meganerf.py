@@ -17,37 +17,8 @@ from hico_plugin.data.formats.meganerf import MegaNerfFormat
 from hico_plugin.data.parser import detect_format
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes.generate import generate_scene
+from helpers_datasets import ORIGIN_DRB, RDF_TO_DRB, SCALE, write_meganerf
 
-# Mega-NeRF's converter: world axes (right, down, forward) of the source frame -> (down, right, back)
-RDF_TO_DRB = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-ORIGIN_DRB = np.array([0.3, -1.2, 2.0])
-SCALE = 7.5
-
-
-def write_meganerf(scene: Path, out: Path, val_every: int = 4) -> dict[str, str]:
-    """A Mega-NeRF folder of the COLMAP scene, following the steps of Mega-NeRF's converter (camera
-    frame permuted to DRB, columns reordered to OpenGL axes, shifted and scaled). Returns
-    {Mega-NeRF image name: COLMAP image name}."""
-    model = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
-    out.mkdir()
-    torch.save({"origin_drb": torch.tensor(ORIGIN_DRB), "pose_scale_factor": SCALE}, out / "coordinates.pt")
-    names = {}
-    for i, image in enumerate(sorted(model.images.values(), key=lambda im: im.name)):
-        split = "val" if i % val_every == 0 else "train"
-        for folder in ("rgbs", "metadata"):
-            (out / split / folder).mkdir(parents=True, exist_ok=True)
-        c2w = image.cam_from_world().inverse().matrix()  # [3, 4], OpenCV axes
-        in_drb = np.concatenate([RDF_TO_DRB @ c2w[:, :3] @ RDF_TO_DRB.T, RDF_TO_DRB @ c2w[:, 3:]], axis=1)
-        in_drb[:, 3] = (in_drb[:, 3] - ORIGIN_DRB) / SCALE
-        stored = np.concatenate([in_drb[:, 1:2], -in_drb[:, :1], in_drb[:, 2:4]], axis=1)
-        camera = model.cameras[image.camera_id]
-        fx, fy, cx, cy = camera.params
-        torch.save({"H": camera.height, "W": camera.width, "c2w": torch.tensor(stored, dtype=torch.float32),
-                    "intrinsics": torch.tensor([fx, fy, cx, cy], dtype=torch.float32),
-                    "distortion": torch.zeros(4)}, out / split / "metadata" / f"{i:06d}.pt")
-        shutil.copy(scene / "images" / image.name, out / split / "rgbs" / f"{i:06d}.png")
-        names[f"{split}/rgbs/{i:06d}.png"] = image.name
-    return names
 
 
 @pytest.fixture(scope="module")

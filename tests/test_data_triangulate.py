@@ -77,7 +77,7 @@ def test_points_triangulated_from_known_poses_lie_on_the_surface(twin, tmp_path,
 def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, monkeypatch, capsys):
     """Mega-NeRF carries no points: they are triangulated from its (DRB, shifted, scaled) poses and
     come out in the source frame, on the scene's surface."""
-    from test_data_meganerf import write_meganerf
+    from helpers_datasets import write_meganerf
 
     scene, _ = twin
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))

@@ -12,7 +12,7 @@ import torch.multiprocessing as mp
 from hico_plugin.engine import TrainerCallback, TrainerConfig, all_reduce_mean_, all_reduce_sum_, is_main_process
 from hico_plugin.engine import distributed as dist_utils
 from hico_plugin.engine.checkpoints import list_checkpoints, load_checkpoint
-from test_engine_toy_model import ToyDataConfig, ToyModelConfig
+from helpers_toy_model import ToyDataConfig, ToyModelConfig
 
 MAX_STEPS = 16  # densifies at steps 4, 9 and 14: parameter shapes change 3 times
 

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from hico_plugin.analysis.effects import analyze_effects, exposure_gains, read_tracks
+from hico_plugin.analysis.evidence import dataset_tracks
+from hico_plugin.analysis.photo_gains import exposure_gains
 from hico_plugin.data import DataParserConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
-from hico_plugin.model.appearance import AffineColour
-from hico_plugin.model.effects import parse_effects
+from hico_plugin.model.effects import analyze_effects, parse_effects
+from hico_plugin.model.effects.exposure import AffineColour
 from hico_plugin.scenes import SCENES
 from hico_plugin.scenes.generate import generate_scene
 
@@ -48,8 +49,9 @@ def test_detector_agrees_with_declared_effects(name, effects):
 def test_exposure_gains_match_the_generator():
     path, dataset = _load("pagoda", {"exposure": True, "sky": True, "sensor_noise": False})
     true = np.log2(np.array(json.loads((path / "scene.json").read_text())["exposure_gains"]))  # [C,3]
-    gains, per_image = exposure_gains(dataset, read_tracks(dataset))
-    assert read_tracks(dataset).source == "colmap tracks"
+    tracks = dataset_tracks(dataset)
+    assert tracks.source == "colmap tracks"
+    gains, per_image = exposure_gains(dataset, tracks)
     true -= true.mean(axis=0)  # the analysis fixes the mean gain at 0
     error = np.abs(gains - true)  # stops, per channel
     assert error.max() < 0.1 and np.median(error) < 0.04
@@ -61,13 +63,13 @@ def test_appearance_starts_from_the_measured_gains():
 
     path, dataset = _load("pagoda", {"exposure": True, "sky": True, "sensor_noise": False})
     model = HiCoModelConfig(effects="auto,sky=off,lod=off").setup(dataset=dataset, total_steps=100)
-    assert model.colour is not None
+    colour = model.effects["exposure"]
     true = np.log2(np.array(json.loads((path / "scene.json").read_text())["exposure_gains"]))
     true = (true - true.mean(axis=0))[dataset.train_indices.numpy()]
-    start = torch.diagonal(model.colour.matrix.detach(), dim1=1, dim2=2).log2().numpy()
+    start = torch.diagonal(colour.matrix.detach(), dim1=1, dim2=2).log2().numpy()
     assert np.abs(start - true).max() < 0.1
-    assert torch.count_nonzero(model.colour.matrix.detach() - torch.diag_embed(torch.diagonal(
-        model.colour.matrix.detach(), dim1=1, dim2=2))) == 0 and not model.colour.bias.any()
+    assert torch.count_nonzero(colour.matrix.detach() - torch.diag_embed(torch.diagonal(
+        colour.matrix.detach(), dim1=1, dim2=2))) == 0 and not colour.bias.any()
     # an unknown gain (too few shared points) starts at identity
     colour = AffineColour(2, torch.tensor([[float("nan")] * 3, [1.0, 0.0, -1.0]]))
     assert torch.equal(colour.matrix[0], torch.eye(3))

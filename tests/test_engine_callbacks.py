@@ -9,7 +9,7 @@ from hico_plugin.engine import TrainerConfig
 from hico_plugin.engine.callbacks import ProgressBar, format_bar_metrics
 from hico_plugin.engine.evaluation import summarize
 from hico_plugin.errors import HicoError
-from test_engine_toy_model import ToyDataConfig, ToyModelConfig
+from helpers_toy_model import ToyDataConfig, ToyModelConfig
 
 
 def test_bar_summary_shows_loss_terms_psnr_and_counts():

@@ -107,3 +107,14 @@ def test_a_run_from_before_orientation_and_kept_ancestors_loads_as_it_was_traine
     old = load_config(path)
     assert type(old.data).__name__ == "DataSourceConfig"
     assert old.data.orient is False and old.model.field.densify.keep_ancestors is False
+
+
+def test_a_run_from_before_effects_became_components_still_loads(tmp_path):
+    """The sky's config class moved with the effects; a config.yml naming its old home loads."""
+    import hico_plugin.presets  # noqa: F401  (the config classes a run's config.yml names)
+    from hico_plugin.model.effects.sky import SkyConfig
+
+    path = tmp_path / "config.yml"
+    path.write_text("!dataclass:hico_plugin.model.hico.HiCoModelConfig\n"
+                    "sky: !dataclass:hico_plugin.model.sky.SkyConfig\n  hidden_dim: 16\n")
+    assert load_config(path).sky == SkyConfig(hidden_dim=16)

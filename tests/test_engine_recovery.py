@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_engine_toy_model import ToyDataConfig, ToyDataset
-from test_engine_trainer import toy_config
+from helpers_toy_model import ToyDataConfig, ToyDataset
+from helpers_toy_model import toy_config
 
 from hico_plugin.engine.checkpoints import latest_checkpoint
 from hico_plugin.engine.run_dir import run_directory, trim_metrics
@@ -37,7 +37,7 @@ def test_lock_of_a_killed_trainer_does_not_block(tmp_path):
         import os, sys
         sys.path.insert(0, {str(TESTS_DIR)!r})
         from pathlib import Path
-        from test_engine_trainer import toy_config
+        from helpers_toy_model import toy_config
         toy_config(Path({str(tmp_path)!r}), max_steps=2).setup()
         os._exit(9)  # dies holding the lock, as a SIGKILL would leave it
     """)

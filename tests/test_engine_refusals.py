@@ -22,7 +22,7 @@ from hico_plugin.errors import HicoError
 @pytest.fixture
 def slow_parts_forbidden(monkeypatch):
     """Decoding an image, the effects analysis and building the model fail the test if they run."""
-    import hico_plugin.analysis.effects
+    import hico_plugin.model.effects.base
     import hico_plugin.data.images
     from hico_plugin.model.hico import HiCoModelConfig
 
@@ -32,7 +32,7 @@ def slow_parts_forbidden(monkeypatch):
         return run
 
     monkeypatch.setattr(hico_plugin.data.images, "decode", forbidden("decoding an image"))
-    monkeypatch.setattr(hico_plugin.analysis.effects, "analyze_effects", forbidden("the effects analysis"))
+    monkeypatch.setattr(hico_plugin.model.effects.base, "analyze_effects", forbidden("the effects analysis"))
     monkeypatch.setattr(HiCoModelConfig, "setup", forbidden("building the model"))
 
 

@@ -10,23 +10,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from hico_plugin.engine import TrainerCallback, TrainerConfig, load_config, load_run
+from hico_plugin.engine import TrainerCallback, load_config, load_run
 from hico_plugin.engine.checkpoints import latest_checkpoint, list_checkpoints, load_checkpoint
 from hico_plugin.engine.data import batch_positions, rank_slice
 from hico_plugin.errors import HicoError
-from test_engine_toy_model import ToyDataConfig, ToyModelConfig
+from helpers_toy_model import ToyModelConfig, toy_config
 
 TESTS_DIR = Path(__file__).parent
-
-
-def toy_config(tmp_path: Path, **overrides) -> TrainerConfig:
-    values = dict(
-        method_name="toy", experiment_name="toy-scene", output_dir=tmp_path / "run",
-        data=ToyDataConfig(), model=ToyModelConfig(), max_steps=24, batch_size=2, seed=7,
-        device="cpu", save_every=10, keep_checkpoints=2, log_every=1, progress="none", vis="none",
-    )
-    values.update(overrides)
-    return TrainerConfig(**values)
 
 
 def final_state(trainer):
@@ -188,7 +178,7 @@ def test_stop_signals_save_a_checkpoint_and_exit_cleanly(tmp_path, signame):
         sys.path.insert(0, {str(TESTS_DIR)!r})
         from pathlib import Path
         from hico_plugin.engine import TrainerCallback, TrainerConfig
-        from test_engine_toy_model import ToyDataConfig, ToyModelConfig
+        from helpers_toy_model import ToyDataConfig, ToyModelConfig, toy_config
 
         class Interrupt(TrainerCallback):
             def on_step_end(self, step, metrics):

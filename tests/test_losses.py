@@ -238,7 +238,7 @@ def test_a_disabled_loss_is_not_built_and_a_foreign_config_is_named():
     losses = Losses.setup({**default_losses(), "dngc": DNGCLossConfig(enabled=False)})
     assert list(losses.components) == ["rgb"] and losses.metrics(10**6) == {}
     with pytest.raises(HicoError, match=r"model\.losses\.sky: expected a loss config .*got SkyConfig"):
-        from hico_plugin.model.sky import SkyConfig
+        from hico_plugin.model.effects.sky import SkyConfig
 
         Losses.setup({"sky": SkyConfig()})
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -184,3 +185,30 @@ def test_a_plugin_dataset_format_is_named_on_the_command_line(site, tmp_path):
                      f"r = load_run({str(out / 'config.yml')!r}); print(len(r.dataset.test_indices))"], site, tmp_path)
     assert reloaded.returncode == 0, reloaded.stderr
     assert int(reloaded.stdout.split()[-1]) == num_test
+
+
+def test_a_plugin_effect_is_detected_chosen_built_and_trained(site, tmp_path):
+    """The example's ``vignetting`` effect: one file and one entry point. hico-inspect reports its
+    finding, ``auto`` decides it from that finding, ``=on`` builds its module and trains its group."""
+    from hico_plugin.scenes.generate import generate_scene
+
+    inspected = _run([_cli("hico-inspect"), str(generate_scene("tiny"))], site, tmp_path)
+    assert inspected.returncode == 0, inspected.stderr
+    assert re.search(r"effect  vignetting +(yes|no ) — corners at [0-9.]+ of the centre's brightness", inspected.stdout)
+
+    auto = _train_tiny(site, tmp_path, tmp_path / "auto", steps=1)
+    assert auto.returncode == 0, auto.stderr
+    assert re.search(r"effect  vignetting: (on|off) — corners at", auto.stdout)
+    choices = json.loads((tmp_path / "auto" / "eval.json").read_text())["results"]["effects"]
+    assert set(choices) == {"exposure", "lod", "sky", "vignetting"}
+
+    on = _train_tiny(site, tmp_path, tmp_path / "on", "--model.effects", "auto,vignetting=on", steps=3)
+    assert on.returncode == 0, on.stderr
+    records = [json.loads(line) for line in (tmp_path / "on" / "metrics.jsonl").read_text().splitlines()]
+    assert any(r.get("effect_parameters/vignetting") == 2.0 for r in records)
+    assert any("lr/vignetting" in r for r in records)
+    state = _run([sys.executable, "-c", "import torch; from hico_plugin.engine.checkpoints import list_checkpoints, "
+                  f"load_checkpoint; from pathlib import Path; p = load_checkpoint(list_checkpoints(Path({str(tmp_path / 'on' / 'checkpoints')!r}))[-1]); "
+                  "print(p['model']['effects.vignetting.k'].abs().sum().item())"], site, tmp_path)
+    assert state.returncode == 0, state.stderr
+    assert float(state.stdout.split()[-1]) > 0  # three steps moved the fall-off from zero

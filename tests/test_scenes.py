@@ -11,7 +11,7 @@ import pytest
 
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes import SCENES
-from hico_plugin.scenes import effects as fx
+from hico_plugin.scenes import capture_effects as fx
 from hico_plugin.scenes import generate as gen
 from hico_plugin.scenes.generate import generate_scene, scene_config
 from hico_plugin.scenes.render import render_view

@@ -9,7 +9,7 @@ import torch
 from hico_plugin.cameras import Camera
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.model import HiCoModelConfig
-from hico_plugin.model.sky import SkyConfig, ray_directions
+from hico_plugin.model.effects.sky import SkyConfig, ray_directions
 from hico_plugin.rasterizer.renderer import RendererConfig
 
 
@@ -57,13 +57,13 @@ def test_model_composites_sky_only_where_alpha_leaves_room():
         out, gaussians = with_sky.render(camera, ("rgb",))
         bare = with_sky.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                                  gaussians.colors, camera, outputs=("rgb", "alpha"))
-        sky = with_sky.sky(camera)
+        sky = with_sky.effects["sky"](camera)
     torch.testing.assert_close(out.rgb, bare.rgb + (1 - bare.alpha) * sky)
     assert "sky" in with_sky.param_groups() and "sky" in with_sky.lr_schedules(100)
 
     without = HiCoModelConfig(renderer=RendererConfig(use_compile=False), eval_lpips="none",
                               effects="auto,sky=off", background=(1.0, 0.0, 0.0)).setup(dataset=dataset)
-    assert without.sky is None and "sky" not in without.param_groups()
+    assert "sky" not in without.effects and "sky" not in without.param_groups()
     with torch.no_grad():
         out, gaussians = without.render(camera, ("rgb",))
         bare = without.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,

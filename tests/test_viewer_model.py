@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_viewer_server import ProtocolClient, _wait_for
+from helpers_viewer import ProtocolClient, wait_for
 
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.model import HiCoModelConfig
@@ -49,7 +49,7 @@ def test_server_renders_a_training_view_through_the_model(tiny_model):
         camera = dataset.cameras[int(dataset.train_indices[0])]
         wxyz, position, fov_y, aspect = camera_to_viser(camera)
         client.send_camera(wxyz, position, fov=fov_y, width=round(300 * aspect), height=300)
-        assert _wait_for(lambda: viewer.render_count >= 1 and viewer.last_image.shape[1] == 96 or viewer.last_error is not None, 60)
+        assert wait_for(lambda: viewer.render_count >= 1 and viewer.last_image.shape[1] == 96 or viewer.last_error is not None, 60)
         assert viewer.last_error is None
         assert viewer.last_image.std() > 1.0  # the scene, not a flat background
         assert viewer.scene.num_levels == int(model.viewer_anchors()[1].max()) + 1

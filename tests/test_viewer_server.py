@@ -7,17 +7,15 @@ import threading
 import time
 from typing import Any
 
-import msgspec
 import numpy as np
 import pytest
 import torch
-import viser
-import websockets.sync.client
 
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer import TrainingCameras, Viewer, ViewerConfig, viser_to_camera
 from hico_plugin.visualization import RenderOptions
 from hico_plugin.viewer.demo import orbit_cameras
+from helpers_viewer import ProtocolClient, wait_for
 
 
 def _free_port() -> int:
@@ -85,46 +83,6 @@ class RecordingRender:
         return np.repeat(np.repeat(ramp[None, :, None], camera.height, 0), 3, 2)
 
 
-class ProtocolClient:
-    """A websocket client that announces a camera like viser's web client (and drains what it gets)."""
-
-    def __init__(self, port: int):
-        self.socket = websockets.sync.client.connect(
-            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None
-        )
-        self.received = 0
-        self._reader = threading.Thread(target=self._drain, daemon=True)
-        self._reader.start()
-
-    def _drain(self) -> None:
-        try:
-            while True:
-                self.socket.recv()
-                self.received += 1
-        except Exception:  # closed
-            return
-
-    def send_camera(self, wxyz, position, fov=1.0, width=400, height=300) -> None:
-        message = {
-            "type": "ViewerCameraMessage", "wxyz": tuple(map(float, wxyz)), "position": tuple(map(float, position)),
-            "fov": fov, "near": 0.01, "far": 100.0, "image_height": height, "image_width": width,
-            "look_at": (0.0, 0.0, 0.0), "up_direction": (0.0, 0.0, 1.0),
-        }
-        self.socket.send(msgspec.msgpack.encode(message))
-
-    def close(self) -> None:
-        self.socket.close()
-
-
-def _wait_for(condition, timeout: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.02)
-    return False
-
-
 _LOOK_MINUS_Z = (0.0, 1.0, 0.0, 0.0)  # 180 deg about x: camera z forward = world -z
 
 
@@ -139,10 +97,10 @@ def test_render_for_displays_a_browser_camera_and_frees_its_port(capsys):
         printed = capsys.readouterr().out
         assert f"http://localhost:{port}" in printed and f"ssh -L {port}:localhost:{port}" in printed
         assert len(viewer.scene.frustums) == 5 and viewer.scene.num_levels == 3
-        assert _wait_for(lambda: state.thumbnails_read == [0, 1, 2, 3, 4] and viewer.scene.frustums[-1].image is not None)
+        assert wait_for(lambda: state.thumbnails_read == [0, 1, 2, 3, 4] and viewer.scene.frustums[-1].image is not None)
         client = ProtocolClient(port)
         client.send_camera(_LOOK_MINUS_Z, (0.5, 0.0, 4.0), fov=0.8, width=400, height=200)
-        assert _wait_for(lambda: viewer.render_count >= 1 and render.calls[-1][0].width == 256)
+        assert wait_for(lambda: viewer.render_count >= 1 and render.calls[-1][0].width == 256)
         assert viewer.clients_seen == 1 and viewer.last_error is None
         camera, options = render.calls[-1]
         expected = viser_to_camera(np.array(_LOOK_MINUS_Z), np.array([0.5, 0.0, 4.0]), 0.8, 256, 128)
@@ -152,7 +110,7 @@ def test_render_for_displays_a_browser_camera_and_frees_its_port(capsys):
         assert viewer.last_image.shape == (128, 256, 3)
         # A GUI change re-renders with the new options.
         viewer.gui.output.value = "depth"
-        assert _wait_for(lambda: render.calls[-1][1].output == "depth")
+        assert wait_for(lambda: render.calls[-1][1].output == "depth")
     finally:
         if client is not None:
             client.close()
@@ -193,12 +151,12 @@ def test_render_errors_are_reported_and_rendering_goes_on():
     client = ProtocolClient(viewer.port)
     try:
         client.send_camera(_LOOK_MINUS_Z, (0.0, 0.0, 4.0))
-        assert _wait_for(lambda: viewer.last_error is not None)
+        assert wait_for(lambda: viewer.last_error is not None)
         assert "model exploded" in viewer.last_error and "model exploded" in viewer.gui.render_status.content
         assert viewer.worker.thread.is_alive()
         render.fail = False  # the model recovered: the next camera move renders again
         client.send_camera(_LOOK_MINUS_Z, (0.0, 0.2, 4.0))
-        assert _wait_for(lambda: viewer.render_count >= 1 and viewer.last_error is None)
+        assert wait_for(lambda: viewer.render_count >= 1 and viewer.last_error is None)
         assert viewer.worker.thread.is_alive()
     finally:
         client.close()
@@ -224,7 +182,7 @@ def test_training_waits_for_at_most_one_render_per_step():
         for i in range(60):  # a moving camera asks for a render all the time
             client.send_camera(_LOOK_MINUS_Z, (0.0, 0.01 * i, 4.0))
             time.sleep(0.02)
-        assert _wait_for(lambda: len(render.steps_at_render) >= 5)
+        assert wait_for(lambda: len(render.steps_at_render) >= 5)
     finally:
         stop.set()
         trainer.join()

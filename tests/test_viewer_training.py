@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 import torch
-from test_engine_toy_model import ToyDataset, ToyModel, render_blobs
-from test_viewer_server import ProtocolClient, _wait_for
+from helpers_toy_model import ToyDataset, ToyModel, render_blobs
+from helpers_viewer import ProtocolClient, wait_for
 
 from hico_plugin.engine import TrainerConfig
 from hico_plugin.viewer import ViewerConfig, attach_viewer
@@ -42,9 +42,9 @@ def test_viewer_follows_and_controls_a_training_run(tmp_path):
     try:
         training.start()
         client.send_camera((0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 2.0))
-        assert _wait_for(lambda: viewer.render_count >= 2 and trainer.step > 20)
+        assert wait_for(lambda: viewer.render_count >= 2 and trainer.step > 20)
         assert all(model.lock_held_during_render)  # every render ran under the trainer's lock
-        assert _wait_for(lambda: "| step |" in viewer.gui.stats_text.content and viewer.stats.plot is not None)
+        assert wait_for(lambda: "| step |" in viewer.gui.stats_text.content and viewer.stats.plot is not None)
         assert "loss" in viewer.stats.plot_names and not viewer.gui.pause.disabled
 
         viewer.toggle_pause()
@@ -55,10 +55,10 @@ def test_viewer_follows_and_controls_a_training_run(tmp_path):
         assert trainer.step == paused_at
         viewer.toggle_pause()
         assert not trainer.is_paused
-        assert _wait_for(lambda: trainer.step > paused_at)
+        assert wait_for(lambda: trainer.step > paused_at)
 
         viewer.request_checkpoint(None)
-        assert _wait_for(lambda: any((tmp_path / "run" / "checkpoints").glob("*.ckpt")))
+        assert wait_for(lambda: any((tmp_path / "run" / "checkpoints").glob("*.ckpt")))
     finally:
         trainer.request_stop()
         training.join(timeout=60)

@@ -15,7 +15,7 @@ from hico_plugin.bench.report import (
     pareto_front,
     write_outputs,
 )
-from hico_plugin.bench.timing import STAGES, StageTimer
+from hico_plugin.bench.stage_timer import STAGES, StageTimer
 
 __all__ = [
     "ABLATION_PRESETS",

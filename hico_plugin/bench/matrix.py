@@ -29,7 +29,7 @@ from typing import Any, Literal
 
 import torch
 
-from hico_plugin.bench.timing import StageTimer
+from hico_plugin.bench.stage_timer import StageTimer
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.data.parser import FormatChoice
 from hico_plugin.engine import TrainerCallback, evaluate

@@ -33,7 +33,7 @@ class AnalyzeArgs:
 
 
 def analyze(args: AnalyzeArgs) -> None:
-    from hico_plugin.bench.analysis_report import analyze_run, compare_runs
+    from hico_plugin.bench.run_features_report import analyze_run, compare_runs
     from hico_plugin.field.lookup_stats import format_table
 
     if not args.runs:

@@ -89,7 +89,7 @@ def main(config: InspectConfig) -> None:
     for line in summarize(dataset):
         print(line)
     if config.effects:
-        from hico_plugin.analysis.effects import analyze_effects
+        from hico_plugin.model.effects import analyze_effects
 
         report = analyze_effects(dataset)
         for line in report.lines():

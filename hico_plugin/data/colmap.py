@@ -27,6 +27,37 @@ class ColmapModel:
     viewmats: np.ndarray  # [N, 4, 4] float64 world->camera
     points: np.ndarray  # [P, 3] float64
     point_colors: np.ndarray  # [P, 3] uint8
+    tracks: "SfmTracks"  # which image observes which point
+
+
+class SfmTracks:
+    """Which view observes which sparse point, from the reconstruction the model was read from. The
+    observations are listed on first use, for the points asked for: the effects analysis needs a
+    subset, and the checks that may refuse a run before training need none."""
+
+    def __init__(self, reconstruction: pycolmap.Reconstruction, point_ids: list[int], points: np.ndarray,
+                 names: list[str]):
+        self._reconstruction = reconstruction
+        self.points = points  # [P, 3] float64, COLMAP's frame: ColmapModel.points
+        self._point_ids = point_ids  # the order of ColmapModel.points
+        view_of_name = {name: view for view, name in enumerate(names)}
+        self._view_of_image = {image_id: view_of_name[image.name] for image_id, image in reconstruction.images.items()
+                               if image.name in view_of_name}
+
+    def __len__(self) -> int:
+        return len(self._point_ids)
+
+    def observations(self, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """(view [O], point [O]) int64: each observation of the points ``points[::stride]`` by a
+        registered view; ``point`` indexes that strided list."""
+        views, points = [], []
+        for row, point_id in enumerate(self._point_ids[::stride]):
+            for element in self._reconstruction.points3D[point_id].track.elements:
+                view = self._view_of_image.get(element.image_id)
+                if view is not None:
+                    views.append(view)
+                    points.append(row)
+        return np.array(views, np.int64), np.array(points, np.int64)
 
 
 def find_model_dir(data_dir: Path) -> Path:
@@ -84,10 +115,12 @@ def read_colmap_model(model_dir: Path) -> ColmapModel:
     points3d = reconstruction.points3D
     if len(points3d) == 0:
         raise HicoError(f"{model_dir}/points3D: the point cloud is empty (expected sparse points to seed anchors)")
-    by_id = [points3d[point_id] for point_id in sorted(points3d)]  # a stable order, whatever the map's
+    point_ids = sorted(points3d)  # a stable order, whatever the map's
+    by_id = [points3d[point_id] for point_id in point_ids]
     points = np.array([point.xyz for point in by_id], dtype=np.float64)
     colors = np.array([point.color for point in by_id], dtype=np.uint8)
     if not np.isfinite(points).all():
         count = int((~np.isfinite(points).all(axis=1)).sum())
         raise HicoError(f"{model_dir}/points3D: {count} points have NaN/inf coordinates (expected finite points)")
-    return ColmapModel(names, [image.camera_id for image in images], cameras, viewmats, points, colors)
+    return ColmapModel(names, [image.camera_id for image in images], cameras, viewmats, points, colors,
+                       SfmTracks(reconstruction, point_ids, points, names))

@@ -82,7 +82,7 @@ class Dataset:
         self.mask_paths = mask_paths
         self.undistorted_dir = undistorted_dir
         self.metadata = metadata
-        self.tracks = tracks  # the format's SfM tracks (e.g. a pycolmap.Reconstruction) when it has them
+        self.tracks = tracks  # the format's SfM tracks (data.colmap.SfmTracks, aligned with the points) or None
         self.depth_paths = depth_paths  # [N] the format's depth maps (transforms.json depth_file_path)
         self.notes = notes or []  # what reading the dataset found worth saying (printed once by its reader)
         self._cache = ByteLRUCache(cache_bytes)

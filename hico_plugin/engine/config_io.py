@@ -37,6 +37,8 @@ _DATACLASS_TAG = "!dataclass:"
 _ENUM_TAG = "!enum:"
 # Config classes that became plain mappings; config.yml files of runs trained before still load.
 _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a {name: LossConfig} mapping
+# Config classes that moved to another module: the path older config.yml files name -> today's.
+_MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.sky.SkyConfig"}
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
 # field gets the value that reproduces the run (its scene frame was not rotated, or rotated by the
 # cameras' mean up; its anchors were not kept nested), not today's default.
@@ -123,6 +125,7 @@ def allowed_config_classes() -> dict[str, type]:
 
 
 def _config_class(qualified: str, loader: _ConfigLoader) -> type:
+    qualified = _MOVED.get(qualified, qualified)
     allowed = getattr(loader, "allowed", None)
     if allowed is None:
         allowed = loader.allowed = allowed_config_classes()

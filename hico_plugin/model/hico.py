@@ -34,10 +34,8 @@ from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_
 from hico_plugin.losses import LossConfig, Losses, default_losses
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
-from hico_plugin.model import lod as _lod  # noqa: F401 -- registers the "lod" effect
-from hico_plugin.model.appearance import AffineColour
-from hico_plugin.model.effects import EFFECTS, choose_effects, parse_effects
-from hico_plugin.model.sky import SkyConfig
+from hico_plugin.model.effects import EFFECTS, EffectInputs, choose_effects, parse_effects
+from hico_plugin.model.effects.sky import SkyConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
 
@@ -45,9 +43,10 @@ EVAL_OUTPUTS = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "d
 
 
 def default_optimizers() -> dict[str, ParamGroupOptimizerConfig]:
-    """Adam schedule per parameter group (CityGS-X's settings, paper Sec. 4.1); decays run over max_steps."""
+    """Adam schedule per parameter group (CityGS-X's settings, paper Sec. 4.1), then each built-in
+    effect's groups as the effect sets them; decays run over max_steps."""
     lr = ParamGroupOptimizerConfig
-    return {
+    field_groups = {
         "anchor": lr(1.6e-4, 1.6e-6, scale_by_extent=True),
         "offset": lr(0.01, 1e-4, scale_by_extent=True),
         "anchor_feat": lr(0.0075),
@@ -57,9 +56,9 @@ def default_optimizers() -> dict[str, ParamGroupOptimizerConfig]:
         "mlp_color": lr(0.008, 5e-5),
         "clca": lr(0.008, 5e-5),  # follows the colour MLP (paper Sec. 4.1)
         "appearance": lr(0.05, 5e-4),
-        "sky": lr(0.01, 1e-4),  # a small MLP like the colour MLP, a little faster: sky is simple
-        "exposure": lr(2e-3, 1e-4),  # settles a 0.35-stop gain within a few hundred steps
     }
+    effect_groups = {group: lr for _, effect in EFFECTS.registered() for group, lr in effect().default_lrs().items()}
+    return {**field_groups, **effect_groups}
 
 
 ANCHORS_PER_SEED_POINT = 32
@@ -91,7 +90,8 @@ class HiCoModelConfig(InstantiateConfig):
     eval_lpips: str = "vgg"
     """LPIPS backbone at evaluation ("vgg" as CityGS-X, "alex", or "none" to skip it)."""
     optimizers: dict[str, ParamGroupOptimizerConfig] = dataclass_field(default_factory=default_optimizers)
-    """Adam learning-rate schedule per parameter group (groups of effects that are off are unused)."""
+    """Adam learning-rate schedule per parameter group (groups of effects that are off are unused; a
+    plug-in effect's groups not listed here train at the rates the effect sets)."""
 
     def validate(self) -> None:
         """A HicoError for a bad --model.effects, before the dataset is read (the trainer's validate)."""
@@ -128,8 +128,13 @@ class HiCoModel(nn.Module):
         self.effect_choices, self.effects_report = choose_effects(config.effects, dataset)
         for choice in self.effect_choices.values():
             print(f"effect  {choice.line()}")
-        on = {name for name, choice in self.effect_choices.items() if choice.on}
-        field_config = EFFECTS.get("lod").field_config(config.field, "lod" in on)
+        effects = {name: EFFECTS.get(name)() for name in self.effect_choices}
+        field_config = config.field
+        for name, effect in effects.items():
+            field_config = effect.configure_field(field_config, self.effect_choices[name].on)
+        # the effects that are on, in image-formation order
+        self.active_effects = dict(sorted(((name, effect) for name, effect in effects.items()
+                                           if self.effect_choices[name].on), key=lambda item: item[1].stage))
         self.field = field_config.setup(points=dataset.points,
                                         train_cameras=_subset(train_cameras, train_ids),
                                         num_train_cameras=len(train_ids), total_steps=total_steps)
@@ -138,17 +143,11 @@ class HiCoModel(nn.Module):
         self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
-        self.sky = config.sky.setup() if "sky" in on else None
-        self.colour = (AffineColour(len(train_ids), self._measured_gains(train_ids)) if "exposure" in on
-                       else None)
+        inputs = EffectInputs(dataset, train_ids, self.effects_report, config)
+        built = {name: effect.build(inputs) for name, effect in self.active_effects.items()}
+        self.effects = nn.ModuleDict({name: module for name, module in built.items() if module is not None})
+        self.register_load_state_dict_pre_hook(_effect_keys_of_older_checkpoints)
         self.last_num_gaussians = 0
-
-    def _measured_gains(self, train_ids: Tensor) -> Tensor | None:
-        """[C,3] log2 gains of the training photos from the data analysis (None when exposure was
-        forced on without an analysis)."""
-        if self.effects_report is None:
-            return None
-        return torch.from_numpy(self.effects_report.log2_gains(train_ids.tolist()))
 
     # ----- rendering ------------------------------------------------------------------------------
 
@@ -175,20 +174,23 @@ class HiCoModel(nn.Module):
             levels = self.field.levels[visible_ids]
             visible_ids = visible_ids[(levels >= level_range[0]) & (levels <= level_range[1])]
         gaussians = self.field.decode(camera, visible_ids, context_enabled=context_enabled)
-        # The sky is composited here, from alpha; a constant background inside the rasterizer.
-        wanted = set(outputs) | ({"alpha"} if self.sky is not None and "rgb" in outputs else set())
+        # An effect that composites what lies behind the Gaussians does it from alpha; otherwise the
+        # rasterizer composites the constant background.
+        behind = any(effect.replaces_background for effect in self.active_effects.values())
+        wanted = set(outputs) | ({"alpha"} if behind and "rgb" in outputs else set())
         out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                             gaussians.colors, camera, outputs=tuple(sorted(wanted)),
-                            background=None if self.sky is not None else self.background)
-        if self.sky is not None and out.rgb is not None:
-            out.rgb = self.over_sky(out, camera)
-        if self.colour is not None and out.rgb is not None:
-            out.rgb = self.colour(out.rgb, camera.index)  # the photo's exposure (training views only)
+                            background=None if behind else self.background)
+        if out.rgb is not None:
+            out.rgb = self.apply_effects(out, camera)
         return out, gaussians
 
-    def over_sky(self, out: RenderOutputs, camera: Camera) -> Tensor:
-        """``out.rgb`` (rendered without background) over the sky: rgb + (1 - alpha) * sky, [H,W,3]."""
-        return out.rgb + (1.0 - out.alpha) * self.sky(camera)
+    def apply_effects(self, out: RenderOutputs, camera: Camera) -> Tensor:
+        """``out.rgb`` (rendered without background when an effect composites it) with every effect
+        that is on applied in image-formation order: [H,W,3]."""
+        for name, effect in self.active_effects.items():
+            out.rgb = effect.apply(self.effects[name] if name in self.effects else None, out, camera)
+        return out.rgb
 
     # ----- rendering for people (viewer, hico-eval, hico-render; see hico_plugin.visualization) -----
 
@@ -220,19 +222,18 @@ class HiCoModel(nn.Module):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = self.field.param_groups()
-        if self.sky is not None:
-            groups["sky"] = list(self.sky.parameters())
-        if self.colour is not None:
-            groups["exposure"] = list(self.colour.parameters())
+        for name, module in self.effects.items():
+            groups.update(self.active_effects[name].param_groups(module))
         return groups
 
     def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
         groups = self.param_groups()
-        missing = sorted(set(groups) - set(self.config.optimizers))
+        rates = {group: rate for effect in self.active_effects.values() for group, rate in effect.default_lrs().items()}
+        rates.update(self.config.optimizers)
+        missing = sorted(set(groups) - set(rates))
         if missing:
             raise HicoError(f"model.optimizers: no entry for parameter group(s) {', '.join(missing)}")
-        schedules = {name: self.config.optimizers[name].schedule(max_steps, self.spatial_lr_scale)
-                     for name in groups}
+        schedules = {name: rates[name].schedule(max_steps, self.spatial_lr_scale) for name in groups}
         if not self.field.config.train_anchor_positions:
             schedules["anchor"] = LRSchedule(0.0, None, max_steps)
         return schedules
@@ -328,7 +329,18 @@ class HiCoModel(nn.Module):
     def stats(self) -> dict[str, float]:
         out = self.field.stats()
         out["num_gaussians"] = float(self.last_num_gaussians)
+        for name, effect in self.active_effects.items():
+            for key, value in effect.cost(self.effects[name] if name in self.effects else None).items():
+                out[f"effect_{key}/{name}"] = value
         return out
+
+
+def _effect_keys_of_older_checkpoints(module: nn.Module, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+    """Checkpoints written before effects became components held the sky and the exposure transform
+    as ``sky.*`` and ``colour.*``: load them under ``effects.sky.*`` and ``effects.exposure.*``."""
+    for old, new in (("sky.", "effects.sky."), ("colour.", "effects.exposure.")):
+        for key in [k for k in state_dict if k.startswith(prefix + old)]:
+            state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
 
 
 def _subset(cameras: Cameras, ids: Tensor) -> Cameras:

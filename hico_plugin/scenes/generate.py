@@ -28,7 +28,7 @@ import pycolmap
 from threadpoolctl import threadpool_limits
 
 from hico_plugin.errors import HicoError
-from hico_plugin.scenes import effects as fx
+from hico_plugin.scenes import capture_effects as fx
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
 from hico_plugin.scenes.render import View, render_view
 from hico_plugin.scenes.sfm import run_sfm

@@ -38,7 +38,7 @@ class SceneRecord:
     point_colors: np.ndarray  # [P, 3] uint8
     mask_paths: list[Path | None] | None = None  # [N] white = keep; None: the default masks/ folder
     depth_paths: list[Path | None] | None = None  # [N] metric depth maps (.npy/.png) when the format has them
-    tracks: Any = None  # optional per-observation SfM tracks (pycolmap.Reconstruction) for analyses
+    tracks: Any = None  # SfM tracks (data.colmap.SfmTracks) when the format has them, for analyses
     test_names: list[str] | None = None  # the layout's own held-out views (Mega-NeRF val/); replaces --test-every
     has_ground_truth: bool = False  # DIR/ground_truth holds exact depth / normals / surface points
     notes: list[str] = field(default_factory=list)  # warnings to print once (missing frames, random points)

@@ -31,7 +31,7 @@ class ColmapFormat(DataFormat):
         paths = [resolve_inside(image_dir, name, f"sparse/0/images: image {name!r}") for name in model.names]
         return SceneRecord(
             names=model.names, image_paths=paths, camera_ids=model.camera_ids, cameras=model.cameras,
-            viewmats=model.viewmats, points=model.points, point_colors=model.point_colors,
+            viewmats=model.viewmats, points=model.points, point_colors=model.point_colors, tracks=model.tracks,
             has_ground_truth=(data_dir / "ground_truth").is_dir(),
         )
 

@@ -4,7 +4,8 @@ Importing this module (which hico_plugin does through the ``hico_plugin.componen
 ``pyproject.toml``) registers a context aggregator, ``gated-mean``, and a preset, ``example-gated``,
 so ``hico-train example-gated`` and ``--model.field.context.kind gated-mean`` work with no edit of
 hico_plugin. Its other modules, each named by an entry point of its own, add a loss
-(``opacity_loss``), an exporter (``cameras_exporter``) and a dataset format (``nerf_synthetic``).
+(``opacity_loss``), an exporter (``cameras_exporter``), a dataset format (``nerf_synthetic``) and an
+image-formation effect (``vignetting``).
 """
 
 from __future__ import annotations

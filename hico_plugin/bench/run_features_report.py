@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hico_plugin.bench.analysis import analyze_features, run_features, stratified_sample
+from hico_plugin.bench.run_features import analyze_features, run_features, stratified_sample
 from hico_plugin.engine.config_io import write_text_atomic
 
 

@@ -13,9 +13,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
+from hico_plugin.analysis.sky_cells import sky_finding
 from hico_plugin.cameras import Camera
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.model.effects import EFFECTS
+from hico_plugin.engine.optimizers import ParamGroupOptimizerConfig
+from hico_plugin.model.effects.base import EFFECTS, Effect, EffectInputs
+from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.geometry import pixel_rays
 
 
@@ -31,10 +35,30 @@ class SkyConfig(InstantiateConfig):
 
 
 @EFFECTS.register("sky")
-class SkyModel(nn.Module):
-    """Sky colour of each pixel of a camera: [H,W,3] in (0,1)."""
+class SkyEffect(Effect):
+    """Open sky (``analysis.sky_cells``): a learned directional colour composited where the Gaussians
+    leave the image uncovered, ``rgb + (1 - alpha) * sky(direction)``."""
 
     finding = "sky"
+    stage = 0  # behind the Gaussians, before the camera's response
+    replaces_background = True
+
+    def detect(self, evidence: DatasetEvidence) -> EffectFinding:
+        return sky_finding(evidence)
+
+    def build(self, inputs: EffectInputs) -> "SkyModel":
+        return inputs.model_config.sky.setup()
+
+    def default_lrs(self) -> dict[str, ParamGroupOptimizerConfig]:
+        # a small MLP like the colour MLP, a little faster: sky is simple
+        return {"sky": ParamGroupOptimizerConfig(0.01, 1e-4)}
+
+    def apply(self, module: "SkyModel", out: RenderOutputs, camera: Camera) -> Tensor:
+        return out.rgb + (1.0 - out.alpha) * module(camera)
+
+
+class SkyModel(nn.Module):
+    """Sky colour of each pixel of a camera: [H,W,3] in (0,1)."""
 
     def __init__(self, config: SkyConfig):
         super().__init__()

@@ -3,19 +3,24 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
-from hico_plugin.model.effects import EFFECTS
+from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
+from hico_plugin.analysis.view_distances import lod_finding
+from hico_plugin.model.effects.base import EFFECTS, Effect
 
 
 @EFFECTS.register("lod")
-class LevelOfDetail:
+class LevelOfDetailEffect(Effect):
     """On: the octree's level count from the camera-to-point distance spread (Octree-GS's
     round(log2(d_max / d_min)) + 1); off: one level, a flat anchor grid (Scaffold-GS)."""
 
     finding = "lod"
 
-    @staticmethod
-    def field_config(field_config, on: bool):
+    def detect(self, evidence: DatasetEvidence) -> EffectFinding:
+        return lod_finding(evidence)
+
+    def configure_field(self, field_config: Any, on: bool) -> Any:
         octree = field_config.octree
         if on or octree.num_levels > 0:  # an explicit --model.field.octree.num_levels wins
             return field_config

@@ -21,14 +21,38 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hico_plugin.model.effects import EFFECTS
+from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
+from hico_plugin.analysis.photo_gains import exposure_finding
+from hico_plugin.cameras import Camera
+from hico_plugin.engine.optimizers import ParamGroupOptimizerConfig
+from hico_plugin.model.effects.base import EFFECTS, Effect, EffectInputs
+from hico_plugin.rasterizer import RenderOutputs
 
 
 @EFFECTS.register("exposure")
-class AffineColour(nn.Module):
-    """rgb' = rgb @ A[slot]^T + b[slot] for training slot ``slot`` (identity for slot < 0)."""
+class ExposureEffect(Effect):
+    """Per-photo exposure and white balance (``analysis.photo_gains``): an affine colour transform of
+    each training photo's render, starting from the gains the analysis measured."""
 
     finding = "exposure"
+    stage = 10  # the camera's response to the whole image, after everything in the scene
+
+    def detect(self, evidence: DatasetEvidence) -> EffectFinding:
+        return exposure_finding(evidence)
+
+    def build(self, inputs: EffectInputs) -> "AffineColour":
+        gains = None if inputs.report is None else torch.from_numpy(inputs.report.log2_gains(inputs.train_ids.tolist()))
+        return AffineColour(len(inputs.train_ids), gains)
+
+    def default_lrs(self) -> dict[str, ParamGroupOptimizerConfig]:
+        return {"exposure": ParamGroupOptimizerConfig(2e-3, 1e-4)}  # settles a 0.35-stop gain within a few hundred steps
+
+    def apply(self, module: "AffineColour", out: RenderOutputs, camera: Camera) -> Tensor:
+        return module(out.rgb, camera.index)  # the photo's exposure (training views only)
+
+
+class AffineColour(nn.Module):
+    """rgb' = rgb @ A[slot]^T + b[slot] for training slot ``slot`` (identity for slot < 0)."""
 
     def __init__(self, num_train_views: int, log2_gains: Tensor | None = None):
         """``log2_gains`` [C,3]: measured per-channel gain of each training photo (NaN = unknown,
