@@ -11,7 +11,6 @@ import torch
 
 from hico_plugin.data import DataParserConfig, SceneTransform
 from hico_plugin.data.cache import ByteLRUCache
-from hico_plugin.data.dataset import linear_quantiles
 from hico_plugin.scenes.ring_dataset import HEIGHT, WIDTH, write_ring_dataset
 
 def test_pinhole_binary_model_loads_normalised(tmp_path):
@@ -303,14 +302,6 @@ def test_builtin_tiny_scene_ground_truth_agrees_with_normalised_cameras(tmp_path
         assert ((z - sampled).abs() / sampled)[visible].median() < 0.02
         normals = dataset.gt_normal(i)[depth > 0]
         assert torch.allclose(normals.norm(dim=-1), torch.ones(len(normals)), atol=1e-4)
-
-
-def test_linear_quantiles_match_torch_quantile():
-    values = torch.randn(5, 301, dtype=torch.float64)
-    probs = [0.0, 0.001, 0.37, 0.999, 1.0]
-    for count in (1, 2, 301):
-        expected = torch.quantile(values[:, :count], torch.tensor(probs, dtype=torch.float64), dim=1).T
-        assert torch.allclose(linear_quantiles(values[:, :count], probs), expected)
 
 
 def test_undistorted_images_are_cached_in_the_user_cache_not_the_dataset(tmp_path, monkeypatch):

@@ -118,3 +118,20 @@ def test_a_run_from_before_effects_became_components_still_loads(tmp_path):
     path.write_text("!dataclass:hico_plugin.model.hico.HiCoModelConfig\n"
                     "sky: !dataclass:hico_plugin.model.sky.SkyConfig\n  hidden_dim: 16\n")
     assert load_config(path).sky == SkyConfig(hidden_dim=16)
+
+
+def test_parent_rule_is_an_enum_that_reads_and_writes_its_name(tmp_path):
+    """ParentRule knows whether the levels nest; config.yml files name it, old ones as a plain string."""
+    import hico_plugin.presets  # noqa: F401  (the config classes a run's config.yml names)
+    from hico_plugin.field.context import ContextConfig
+    from hico_plugin.field.context_graph import ParentRule
+
+    assert ParentRule.trilinear.nests and not ParentRule.paper.nests
+    path = tmp_path / "config.yml"
+    save_config(ContextConfig(parent_rule="paper"), path)
+    assert "parent_rule: !enum:hico_plugin.field.context_graph.ParentRule 'paper'" in path.read_text()
+    assert load_config(path).parent_rule is ParentRule.paper
+    path.write_text("!dataclass:hico_plugin.field.context.ContextConfig\nparent_rule: paper\n")
+    assert load_config(path).parent_rule is ParentRule.paper
+    with pytest.raises(HicoError, match="parent_rule: expected one of trilinear, paper, got 'ceil'"):
+        ContextConfig(parent_rule="ceil")

@@ -101,7 +101,7 @@ def test_bad_points_are_user_errors():
 
 def make_field(**config_changes) -> AnchorField:
     points, _ = next(point_clouds())
-    return FieldConfig(**config_changes).setup(points=points, train_cameras=ring_cameras(), total_steps=3000)
+    return FieldConfig(**config_changes).setup(points=points, train_cameras=ring_cameras(), schedule_scale=0.1)
 
 
 def test_state_dict_round_trip_restores_grid_and_shapes():
@@ -110,7 +110,7 @@ def test_state_dict_round_trip_restores_grid_and_shapes():
         field.anchor_features.normal_()
         field.extra_level.uniform_()
     other_points = torch.rand(500, 3) * 3 + 1  # a different cloud: other grid, other anchor count
-    fresh = FieldConfig().setup(points=other_points, train_cameras=ring_cameras(), total_steps=3000)
+    fresh = FieldConfig().setup(points=other_points, train_cameras=ring_cameras(), schedule_scale=0.1)
     assert fresh.num_anchors != field.num_anchors and fresh.grid != field.grid
     fresh.load_state_dict(field.state_dict())
     assert fresh.grid == field.grid
@@ -163,7 +163,7 @@ def test_progressive_levels_follow_the_schedule():
     ends8 = progressive_interval_ends(OctreeGrid((0, 0, 0), 1, 1, 8, 2, 1, 4), 10_000, 1.5)
     assert ends8 == pytest.approx([4736.84, 7894.74, 10000], abs=0.01)
     field = hand_field([[4, 4, 4]], [0], [[4, 4, 0]])  # 3 levels, init_level 1
-    field.set_total_steps(3000)  # coarse_steps 10k of 30k -> the last level switches on at 1000
+    field.set_schedule_scale(0.1)  # coarse_steps 10k of 30k -> the last level switches on at 1000
     assert field.level_interval_ends == pytest.approx([1000.0])
     assert [field.active_levels(s) for s in (0, 1000, 1001, None)] == [2, 2, 3, 3]
     assert not field.progressive_done(1000) and field.progressive_done(1001)
@@ -334,7 +334,7 @@ def test_training_loop_with_the_rasterizer_grows_and_stays_finite():
     # offsets are zero and same-level proposals land in the anchor's own, occupied cell).
     densify = DensifyConfig(start_step=2, interval=2, grad_threshold=1e-5)
     field = FieldConfig(progressive=False, densify=densify).setup(
-        points=next(point_clouds())[0][:400], train_cameras=cameras, total_steps=30_000)
+        points=next(point_clouds())[0][:400], train_cameras=cameras, schedule_scale=1.0)
     optimizers = Optimizers(field.param_groups(), field_schedules(field))
     target = torch.full((24, 32, 3), 0.7)
     losses, grown = [], 0

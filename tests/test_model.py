@@ -159,3 +159,25 @@ def test_effects_are_built_applied_and_loaded_by_name(tiny):
     fresh.load_state_dict(old_names)
     torch.testing.assert_close(fresh.effects["exposure"].matrix, model.effects["exposure"].matrix)
     torch.testing.assert_close(fresh.effects["sky"].mlp[0].weight, model.effects["sky"].mlp[0].weight)
+
+
+def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losses(tiny):
+    """The model decides the schedule scale once (scale_schedules) and the field and DNGC both take
+    it; the octree's level count is the one the LOD finding and hico-inspect report."""
+    from hico_plugin.cli.inspect import summarize
+    from hico_plugin.field.octree import level_count
+    from hico_plugin.model.effects import analyze_effects
+
+    scaled = _config().setup(dataset=tiny, total_steps=300)
+    fixed = _config(scale_schedules=False).setup(dataset=tiny, total_steps=300)
+    dngc = _config().losses["dngc"]
+    assert scaled.field.schedule_scale == pytest.approx(0.01) and fixed.field.schedule_scale == 1.0
+    assert scaled.losses.components["dngc"].start_step == round(dngc.start_step * 0.01)
+    assert fixed.losses.components["dngc"].start_step == dngc.start_step
+    assert scaled.field.densify_start == round(scaled.config.field.densify.start_step * 0.01)
+    assert fixed.field.densify_start == fixed.config.field.densify.start_step
+
+    levels = level_count(*tiny.camera_distance_range())
+    assert scaled.field.grid.num_levels == levels
+    assert analyze_effects(tiny).effects["lod"].figures["levels"] == levels
+    assert any(f"-> {levels} octree levels" in line for line in summarize(tiny))

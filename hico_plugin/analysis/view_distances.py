@@ -4,11 +4,10 @@ octree level count that spread calls for (the LOD effect's finding).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding, group_median
+from hico_plugin.field.octree import level_count
 
 # multi-distance: the cameras' median distances to the points they see spread by more than this
 # (95th / 5th percentile over views): one octree level (fork 2) or more apart. Single-orbit captures
@@ -35,14 +34,9 @@ def multi_distance_finding(evidence: DatasetEvidence) -> EffectFinding:
     return EffectFinding(bool(present), reason, {"distance_ratio": round(ratio, 4), "threshold_ratio": MULTI_DISTANCE_MIN_RATIO})
 
 
-def lod_levels(dist_min: float, dist_max: float) -> int:
-    """The octree's level count for a distance range (fork 2): round(log2(max / min)) + 1."""
-    return round(math.log2(dist_max / dist_min)) + 1 if dist_min > 0 and dist_max > dist_min else 1
-
-
 def lod_finding(evidence: DatasetEvidence) -> EffectFinding:
     dist_min, dist_max = evidence.dataset.camera_distance_range()
-    levels = lod_levels(dist_min, dist_max)
+    levels = level_count(dist_min, dist_max)
     ratio = dist_max / max(dist_min, 1e-12)
     present = levels >= LOD_MIN_LEVELS
     reason = (f"camera-to-point distances span {ratio:.3g}x ({dist_min:.3g} .. {dist_max:.3g}) -> {levels} "

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +13,7 @@ import tyro
 from hico_plugin.cli import run_cli
 from hico_plugin.data import DataParserConfig, Dataset
 from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.field.octree import level_count
 
 
 @dataclass
@@ -47,7 +47,7 @@ def summarize(dataset: Dataset) -> list[str]:
     if len(sizes) > 3:
         size_text += f", ... {len(sizes)} sizes in all"
     dist_min, dist_max = dataset.camera_distance_range()
-    levels = round(math.log2(dist_max / dist_min)) + 1 if dist_min > 0 else 1
+    levels = level_count(dist_min, dist_max)
     has_masks = sum(path is not None for path in dataset.mask_paths)
     ground_truth = [
         kind

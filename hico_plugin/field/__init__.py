@@ -1,6 +1,6 @@
 """The anchor octree field: LOD selection, cross-level context aggregation (CLCA), Gaussian decoding.
 
-    field = FieldConfig().setup(points=points, train_cameras=cameras, total_steps=30_000)
+    field = FieldConfig().setup(points=points, train_cameras=cameras, schedule_scale=1.0)
     visible_ids = field.select(camera, step)
     gaussians = field.decode(camera, visible_ids)      # NeuralGaussians
 

@@ -94,7 +94,7 @@ def context_lookup(features: Tensor, graph: ContextGraph, reduce: str = "mean") 
     parent_pooled = torch.zeros(num, dtype=torch.long, device=features.device).index_add(
         0, graph.anchor, graph.count[graph.edge_cell])
     child_pooled = torch.bincount(graph.edge_cell, minlength=graph.num_cells)[graph.cell]
-    if graph.rule == "paper":  # the paper's fallback: an empty lookup reads c_self
+    if not graph.rule.nests:  # the paper's fallback: an empty lookup reads c_self
         parent = parent + (~parent_found)[:, None] * own
         child = child + (~child_found)[:, None] * own
     return ContextLookup(parent, own, child, parent_found, child_found, parent_pooled, child_pooled)
@@ -106,7 +106,7 @@ def context_triplet(features: Tensor, graph: ContextGraph, reduce: str = "mean",
     where a context is absent under the trilinear rule (zeros if missing is None)."""
     found = context_lookup(features, graph, reduce)
     parent, child = found.parent, found.child
-    if graph.rule != "paper" and missing is not None:
+    if graph.rule.nests and missing is not None:
         # parent / child are exactly 0 where absent: adding is where() without its two-branch backward.
         parent = parent + (~found.parent_found)[:, None] * missing[0]
         child = child + (~found.child_found)[:, None] * missing[1]
@@ -120,7 +120,7 @@ class ContextConfig(InstantiateConfig):
     kind: str = "mean"
     """Aggregator: none (f_hat = f), mean (the paper), max (max-pooled contexts), attention
     (attention over the parent/self/child triplet instead of concatenation + MLP)."""
-    parent_rule: ParentRule = "trilinear"
+    parent_rule: ParentRule = ParentRule.trilinear
     """Which coarser anchors are an anchor's parents: trilinear = the 1-8 grid points around k/2 with
     trilinear weights, absent contexts a learned vector (levels nest); paper = the paper's
     round((p - o)/v_{l-1}) with a copy of c_self for every empty lookup (the literal ablation)."""
@@ -130,10 +130,14 @@ class ContextConfig(InstantiateConfig):
     """Biases in the context MLP. With d = 32 and biases the MLP has 4,160 parameters (the paper's
     3,168 is not reachable by a 96 -> 32 -> 32 MLP; without biases it has 4,096)."""
 
-    def setup(self, feature_dim: int = 32, **kwargs) -> "ContextAggregator":
+    def __post_init__(self) -> None:
+        # config.yml files and Python callers give the rule as its name
         if self.parent_rule not in PARENT_RULES:
             raise HicoError(f"field.context.parent_rule: expected one of {', '.join(PARENT_RULES)}, "
                             f"got '{self.parent_rule}'")
+        self.parent_rule = ParentRule(self.parent_rule)
+
+    def setup(self, feature_dim: int = 32, **kwargs) -> "ContextAggregator":
         return CONTEXT_AGGREGATORS.get(self.kind)(self, feature_dim)
 
 

@@ -19,16 +19,36 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from enum import Enum
 from functools import cached_property
-from typing import Literal
 
 import torch
 from torch import Tensor
 
 from hico_plugin.field.octree import OctreeGrid
 
-ParentRule = Literal["trilinear", "paper"]
-PARENT_RULES = ("trilinear", "paper")
+class ParentRule(str, Enum):
+    """Which coarser anchors are an anchor's parents (``ContextConfig.parent_rule``); a str, so configs
+    and the command line name it ``trilinear`` or ``paper``.
+
+    trilinear: anchors sit on grid points, and a level-l anchor's parents are the 1-8 grid points
+    around it at level l-1, with trilinear weights; the levels nest (the lookup reads a tree, which
+    densification keeps), and an absent context is a learned vector. paper: the paper's Eqs. 3-4 taken
+    literally, the one cell round((p - o) / v_{l-1}) of the drifted position, which need not nest, and
+    an empty lookup reads c_self."""
+
+    trilinear = "trilinear"
+    paper = "paper"
+
+    @property
+    def nests(self) -> bool:
+        """Whether the parents are grid points of the level above (trilinear), not the drifted
+        position's cell (paper): what the lookup, its relation's cache key, its fallback for an empty
+        lookup and densification's kept tree depend on."""
+        return self is ParentRule.trilinear
+
+
+PARENT_RULES = tuple(rule.value for rule in ParentRule)
 _CORNERS = [[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)]
 
 
@@ -66,7 +86,7 @@ def parent_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: Pare
     paper: the one cell ``round((p - o) / v_{l-1})`` of the (drifted) position, weight 1.
     """
     fine = (levels > 0).nonzero().squeeze(1)
-    if rule == "paper":
+    if not ParentRule(rule).nests:
         index = grid.grid_index(positions.detach()[fine], levels[fine] - 1)
         return fine, index, positions.new_ones(fine.shape[0])
     own = grid.grid_index(positions.detach()[fine], levels[fine])  # [F,3]
@@ -190,14 +210,14 @@ class ContextIndex:
     """The relation over all anchors, rebuilt only when an anchor's level or cell changed; ``view``
     restricts it to the visible ones. Holds no parameters and nothing worth saving."""
 
-    def __init__(self, grid: OctreeGrid, rule: ParentRule):
-        self.grid, self.rule = grid, rule
+    def __init__(self, grid: OctreeGrid, rule: ParentRule | str):
+        self.grid, self.rule = grid, ParentRule(rule)
         self._signature: Tensor | None = None
 
     def _cell_signature(self, levels: Tensor, positions: Tensor) -> Tensor:
         """[N, 4 or 7] long: what the relation is made from (level, own cell; paper: + parent cell)."""
         parts = [cell_keys(positions, levels, self.grid)]
-        if self.rule == "paper":
+        if not self.rule.nests:  # the parent cell follows the drifted position
             parts.append(self.grid.grid_index(positions, (levels - 1).clamp_min(0)))
         return torch.cat(parts, 1)
 
@@ -256,7 +276,7 @@ class ContextIndex:
                             self._weight[keep].to(dtype), by_cell, members[members >= 0])
 
 
-def context_graph(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: ParentRule = "trilinear"
+def context_graph(levels: Tensor, positions: Tensor, grid: OctreeGrid, rule: ParentRule = ParentRule.trilinear
                   ) -> ContextGraph:
     """The graph of a set of anchors all counted as visible: levels [V] long, positions [V,3]."""
     return ContextIndex(grid, rule).view(levels, positions, torch.arange(levels.shape[0], device=levels.device))

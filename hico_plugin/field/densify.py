@@ -7,12 +7,13 @@ which offsets spawn which new anchors and which anchors are pruned.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.field.context_graph import cell_keys, dense_cell_ids, parent_edges
+from hico_plugin.field.context_graph import ParentRule, cell_keys, dense_cell_ids, parent_edges
 from hico_plugin.field.octree import OctreeGrid, visibility_fraction
 
 
@@ -57,6 +58,13 @@ class DensifyConfig(InstantiateConfig):
     """Keep the tree also where no trilinear CLCA lookup reads it (context kind none, or the paper's
     lookup): the anchors the tree adds, without the context. This is the control that tells the two
     apart in CLCA's ablation (README, "What CLCA and DNGC buy")."""
+
+    def keeps_tree(self, context: Any) -> bool:
+        """Whether densification keeps the octree a tree for the field whose context config is
+        ``context``: where a nesting CLCA lookup reads it (``keep_ancestors``), or everywhere with
+        ``keep_ancestors_without_context``."""
+        read = context.kind != "none" and context.parent_rule.nests
+        return self.keep_ancestors and (self.keep_ancestors_without_context or read)
 
 
 def offset_gradients(grad_accum: Tensor, denom: Tensor, min_observations: float) -> tuple[Tensor, Tensor]:
@@ -163,7 +171,7 @@ def orphan_edges(levels: Tensor, positions: Tensor, grid: OctreeGrid, occupied: 
     the anchors' own cells) -> (orphan [N] bool, and the orphans' candidate edges: anchor [E] long,
     parent key [E,4] long (level, index), weight [E]).
     """
-    anchor, parent_index, weight = parent_edges(levels, positions, grid, "trilinear")
+    anchor, parent_index, weight = parent_edges(levels, positions, grid, ParentRule.trilinear)
     parent_keys = torch.cat([levels[anchor, None] - 1, parent_index], 1)
     table = cell_keys(positions, levels, grid) if occupied is None else occupied
     has_parent = torch.zeros(levels.shape[0], dtype=torch.bool, device=levels.device)

@@ -81,21 +81,22 @@ class FieldConfig(InstantiateConfig):
     """Anchor positions get a learning rate (CityGS-X); False freezes them (Octree-GS, Scaffold-GS)."""
 
     def setup(self, points: Tensor | None = None, train_cameras: Cameras | None = None,
-              num_train_cameras: int | None = None, total_steps: int | None = None,
-              **kwargs) -> "AnchorField":
+              num_train_cameras: int | None = None, schedule_scale: float = 1.0,
+              distances: tuple[float, float] | None = None, **kwargs) -> "AnchorField":
         """Build the octree from sparse points [P,3] and the training cameras, then the field.
 
-        The field is built on the CPU; move it with ``.to(device)`` like any module. ``total_steps``
-        (the run's optimizer steps) scales the schedules; None keeps ``reference_steps``.
+        The field is built on the CPU; move it with ``.to(device)`` like any module. ``schedule_scale``
+        (the run's length / ``reference_steps``, decided by the model) scales the step schedules;
+        ``distances``: the camera-to-point distance range when the caller measured it already.
         """
         if points is None or train_cameras is None:
             raise HicoError("field: setup needs the sparse points and the training cameras")
         points = torch.as_tensor(points, dtype=torch.float32).cpu()
         centers = train_cameras.centers.float().cpu()
-        positions, levels, grid = build_octree(points, centers, self.octree)
+        positions, levels, grid = build_octree(points, centers, self.octree, distances)
         return AnchorField(self, positions, levels, grid, centers,
                            num_train_cameras if num_train_cameras is not None else len(train_cameras),
-                           total_steps)
+                           schedule_scale)
 
 
 class AnchorField(nn.Module):
@@ -112,7 +113,7 @@ class AnchorField(nn.Module):
     """
 
     def __init__(self, config: FieldConfig, positions: Tensor, levels: Tensor, grid: OctreeGrid,
-                 camera_centers: Tensor, num_train_cameras: int = 0, total_steps: int | None = None):
+                 camera_centers: Tensor, num_train_cameras: int = 0, schedule_scale: float = 1.0):
         super().__init__()
         self.config = config
         self.grid = grid
@@ -133,20 +134,16 @@ class AnchorField(nn.Module):
         for name in STAT_BUFFERS:
             self.register_buffer(f"{name}_synced", getattr(self, name).clone())
         self.context = config.context.setup(feature_dim=d)
-        # The tree is kept for the lookup that relies on it, or on request (DensifyConfig.keep_ancestors).
-        densify_config = config.densify
-        self.keeps_ancestors = densify_config.keep_ancestors and (densify_config.keep_ancestors_without_context or (
-            config.context.kind != "none" and config.context.parent_rule == "trilinear"))
+        self.keeps_ancestors = config.densify.keeps_tree(config.context)
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
-        self.set_total_steps(total_steps)
+        self.set_schedule_scale(schedule_scale)
         self.last_densify: dict[str, int] = {}
 
     # ----- schedule -------------------------------------------------------------------------------
 
-    def set_total_steps(self, total_steps: int | None) -> None:
-        """Scale the step-valued schedules to a run of ``total_steps`` (None = reference length)."""
-        self.total_steps = total_steps
-        scale = 1.0 if not total_steps else total_steps / self.config.reference_steps
+    def set_schedule_scale(self, scale: float) -> None:
+        """Scale the step-valued schedules by ``scale`` (a run's length / ``reference_steps``)."""
+        self.schedule_scale = scale
         dens = self.config.densify
         self.densify_start = int(round(dens.start_step * scale))
         self.densify_interval = max(1, int(round(dens.interval * scale)))
@@ -354,7 +351,7 @@ class AnchorField(nn.Module):
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
         self.grid = OctreeGrid.from_dict(state["grid"])
-        self.set_total_steps(self.total_steps)  # the level schedule depends on the grid's levels
+        self.set_schedule_scale(self.schedule_scale)  # the level schedule depends on the grid's levels
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys,
                               unexpected_keys, error_msgs):

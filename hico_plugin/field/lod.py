@@ -10,7 +10,7 @@ from hico_plugin.field.octree import OctreeGrid, lod_levels_from_distance
 
 
 def progressive_interval_ends(grid: OctreeGrid, coarse_steps: float, coarse_factor: float) -> list[float]:
-    """Steps at which levels init_level+1, init_level+2, ... switch on (§2).
+    """Steps at which levels init_level+1, init_level+2, ... switch on (Octree-GS's progressive training).
 
     n = num_levels - 1 - init_level intervals whose lengths shrink geometrically by 1/coarse_factor
     and sum to ``coarse_steps``; empty when no level is held back.

@@ -85,9 +85,29 @@ def _quantile(values: Tensor, q: float) -> Tensor:
     return torch.quantile(values.flatten().float(), q)
 
 
+MAX_SEED_POINTS = 2_000_000  # sparse points beyond this are subsampled evenly (memory of the per-level unique)
+
+
+def anchor_seed_points(points: Tensor, max_points: int = MAX_SEED_POINTS) -> Tensor:
+    """The sparse points [P,3] the octree is built from: float32, duplicates removed, evenly strided
+    down to ``max_points``."""
+    points = torch.unique(points.float(), dim=0)
+    return points[:: math.ceil(points.shape[0] / max_points)] if points.shape[0] > max_points else points
+
+
+def level_count(dist_min: float, dist_max: float, fork: int = 2) -> int:
+    """The octree's level count for a camera-to-point distance range (Octree-GS): one level per
+    halving (``fork``: per b-fold step) of the distance, round(log_b(dist_max / dist_min)) + 1."""
+    if not dist_max > 0:
+        return 1
+    dist_min = max(dist_min, dist_max * 1e-6)
+    return max(1, int(round(math.log2(dist_max / dist_min) / math.log2(fork))) + 1)
+
+
 def distance_range(points: Tensor, camera_centers: Tensor, dist_ratio: float = 0.999,
                    chunk_elements: int = 1 << 24) -> tuple[float, float]:
-    """(dist_min, dist_max) of the camera-to-point distances, robust to outliers (§1 ``set_level``).
+    """(dist_min, dist_max) of the camera-to-point distances, robust to outliers (Octree-GS's
+    ``set_level``); the one figure the level count, the LOD effect's finding and the mesh depth use.
 
     points [P,3], camera_centers [C,3]. Per camera, the (1-r) and r quantiles of its distances to
     all points are collected; dist_max is the r-quantile of that list, dist_min its (1-r)-quantile.
@@ -105,7 +125,8 @@ def distance_range(points: Tensor, camera_centers: Tensor, dist_ratio: float = 0
 
 
 def knn_log_scale(positions: Tensor, k: int = 3) -> Tensor:
-    """log(sqrt(mean squared distance to the k nearest other anchors)): [N] (§1, ``distCUDA2``).
+    """log(sqrt(mean squared distance to the k nearest other anchors)): [N] (the 3DGS / Octree-GS
+    initial scale, their ``distCUDA2``).
 
     Coincident anchors (a coarse grid point is also a fine one) give distance 0, clamped to 1e-7 in
     squared distance as the base method does.
@@ -134,7 +155,8 @@ def lod_levels_from_distance(distances: Tensor, grid: OctreeGrid, extra_level: T
 
 def visibility_fraction(positions: Tensor, levels: Tensor, camera_centers: Tensor, grid: OctreeGrid,
                         chunk_elements: int = 1 << 24) -> Tensor:
-    """Fraction of cameras from which each anchor's level is LOD-visible (no eps): [N] (§1 weed-out).
+    """Fraction of cameras from which each anchor's level is LOD-visible (no eps): [N] (Octree-GS's
+    weed-out of anchors no training camera would draw).
 
     positions [N,3], levels [N], camera_centers [C,3]. Chunked over anchors so N x C never
     materialises at once.
@@ -177,7 +199,7 @@ def voxelize(points: Tensor, grid: OctreeGrid) -> tuple[Tensor, Tensor]:
 
 @dataclass
 class OctreeBuildConfig:
-    """How the anchor octree is built from the sparse points and the training cameras (§1)."""
+    """How the anchor octree is built from the sparse points and the training cameras (Octree-GS)."""
 
     fork: int = 2
     """Branching factor b per axis (2 = octree)."""
@@ -195,29 +217,24 @@ class OctreeBuildConfig:
     visible_threshold: float = 0.01
     """Weed-out: keep anchors LOD-visible from more than this fraction of the training cameras;
     negative = the mean visibility."""
-    max_points: int = 2_000_000
+    max_points: int = MAX_SEED_POINTS
     """Sparse points beyond this are subsampled evenly (memory bound for the per-level unique)."""
 
 
-def build_octree(points: Tensor, camera_centers: Tensor, config: OctreeBuildConfig
-                 ) -> tuple[Tensor, Tensor, OctreeGrid]:
-    """Anchors of the octree: points [P,3], camera_centers [C,3] -> (positions [N,3], levels [N], grid)."""
+def build_octree(points: Tensor, camera_centers: Tensor, config: OctreeBuildConfig,
+                 distances: tuple[float, float] | None = None) -> tuple[Tensor, Tensor, OctreeGrid]:
+    """Anchors of the octree: points [P,3], camera_centers [C,3] -> (positions [N,3], levels [N], grid).
+    ``distances``: the ``distance_range`` of these points and cameras when already measured."""
     if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] == 0:
         raise HicoError(f"field: sparse points must be a non-empty [P, 3] array, got {list(points.shape)}")
     if camera_centers.shape[0] == 0:
         raise HicoError("field: at least one training camera is needed to build the octree")
     if not torch.isfinite(points).all():
         raise HicoError("field: sparse points contain NaN or Inf coordinates")
-    points = torch.unique(points.float(), dim=0)
-    if points.shape[0] > config.max_points:
-        points = points[:: math.ceil(points.shape[0] / config.max_points)]
+    points = anchor_seed_points(points, config.max_points)
     fork = config.fork
-    dist_min, dist_max = distance_range(points, camera_centers.float(), config.dist_ratio)
-    dist_min = max(dist_min, dist_max * 1e-6)
-    num_levels = config.num_levels
-    if num_levels <= 0:
-        num_levels = int(round(math.log2(dist_max / dist_min) / math.log2(fork))) + 1
-    num_levels = max(1, num_levels)
+    dist_min, dist_max = distances or distance_range(points, camera_centers.float(), config.dist_ratio)
+    num_levels = config.num_levels if config.num_levels > 0 else level_count(dist_min, dist_max, fork)
     init_level = config.init_level if config.init_level >= 0 else num_levels // 2
     init_level = min(init_level, num_levels - 1)
 

@@ -85,8 +85,8 @@ class HiCoModelConfig(InstantiateConfig):
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour composited behind the Gaussians when the sky is off."""
     scale_schedules: bool = True
-    """Scale the step-valued schedules (DNGC t0 and T, like the field's densification and levels)
-    by max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
+    """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
+    max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
     eval_lpips: str = "vgg"
     """LPIPS backbone at evaluation ("vgg" as CityGS-X, "alex", or "none" to skip it)."""
     optimizers: dict[str, ParamGroupOptimizerConfig] = dataclass_field(default_factory=default_optimizers)
@@ -135,11 +135,14 @@ class HiCoModel(nn.Module):
         # the effects that are on, in image-formation order
         self.active_effects = dict(sorted(((name, effect) for name, effect in effects.items()
                                            if self.effect_choices[name].on), key=lambda item: item[1].stage))
+        # the one schedule scale, for the field's densification and levels and the losses' DNGC
+        scale = (total_steps / config.field.reference_steps) if (config.scale_schedules and total_steps) else 1.0
+        octree = field_config.octree
         self.field = field_config.setup(points=dataset.points,
                                         train_cameras=_subset(train_cameras, train_ids),
-                                        num_train_cameras=len(train_ids), total_steps=total_steps)
+                                        num_train_cameras=len(train_ids), schedule_scale=scale,
+                                        distances=dataset.camera_distance_range(octree.dist_ratio, octree.max_points))
         self.renderer = config.renderer.setup()
-        scale = (total_steps / config.field.reference_steps) if (config.scale_schedules and total_steps) else 1.0
         self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
         self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
