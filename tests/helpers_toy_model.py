@@ -1,5 +1,5 @@
 """A toy model + dataset that exercise the engine's protocol (the engine's tests train it; the toy's
-own checks are in test_engine_toy_model.py).
+own checks are in engine/test_engine_toy_model.py).
 
 The toy "renders" N coloured 2-D blobs, shifted by the camera's x/y translation, through a small
 colour MLP. It has what the real model has that matters to the engine: two parameter groups, one of

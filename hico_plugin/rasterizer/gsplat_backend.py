@@ -4,7 +4,7 @@ projection is gsplat's ``fully_fused_projection`` given the opacities, so the dr
 opacity-aware like the torch backend's (gsplat's radii are per axis, [C,N,2]; the RenderOutputs
 contract keeps their maximum, [C,N]).
 
-Conventions checked against gsplat's pure-torch reference (tests/test_gsplat_backend.py): camera z,
+Conventions checked against gsplat's pure-torch reference (tests/rasterizer/test_gsplat_backend.py): camera z,
 projected centres (pixel centres at +0.5) and conics agree to rounding, with the same 0.3 px^2 blur,
 frustum-widened Jacobian clamp and near/far culling. Differences: the reference's radius is
 ceil(3.33 sigma) per axis, ours ceil(sqrt(2 ln(255 o)) sigma) of the larger axis (3.329 sigma at o = 1,

@@ -148,7 +148,7 @@ def test_exported_gaussians_render_like_the_model(run_dir, tmp_path):
     # across the rasterizer's cut-offs (a 1e-7 jitter alone gives a max of ~6e-3), so the mean decides:
     # correct 2.0e-6; a wxyz <-> xyzw mix-up 3.2e-3 (max 3.3e-2). Tiny loads unrotated (its cameras are
     # level, and its 300 sparse points give too few wall normals to turn it), so the quaternions' frame mapping is tested with a random
-    # rotation in test_export.
+    # rotation in export/test_export.py.
     error = (rgb - expected.rgb).abs()
     assert error.mean() < 5e-6 and error.max() < 1e-2
 

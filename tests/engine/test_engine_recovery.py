@@ -20,7 +20,7 @@ from hico_plugin.engine.run_dir import run_directory, trim_metrics
 from hico_plugin.engine.stopping import EXIT_INTERRUPTED
 from hico_plugin.errors import HicoError
 
-TESTS_DIR = Path(__file__).parent
+TESTS_DIR = Path(__file__).resolve().parents[1]  # tests/, where the helpers live
 
 
 def test_second_trainer_on_a_run_refuses_in_one_line(tmp_path):

@@ -2,7 +2,7 @@
 random image names. Every case either loads or fails with one HicoError line; nothing escapes as
 another exception, and no path the dataset would read lies outside images/.
 
-Case counts: ``pytest tests/test_data_fuzz.py --hypothesis-show-statistics``.
+Case counts: ``pytest tests/data/test_data_fuzz.py --hypothesis-show-statistics``.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ from hico_plugin.engine.data import batch_positions, rank_slice
 from hico_plugin.errors import HicoError
 from helpers_toy_model import ToyModelConfig, toy_config
 
-TESTS_DIR = Path(__file__).parent
+TESTS_DIR = Path(__file__).resolve().parents[1]  # tests/, where the helpers live
 
 
 def final_state(trainer):
