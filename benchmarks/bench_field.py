@@ -17,11 +17,13 @@ import math
 import statistics
 import time
 
+import numpy as np
 import torch
 
 from hico_plugin.cameras import Cameras
 from hico_plugin.field import FieldConfig
 from hico_plugin.rasterizer import rasterize
+from hico_plugin.scenes.orbits import look_at
 
 
 def city_points(num: int, gen: torch.Generator) -> torch.Tensor:
@@ -46,15 +48,8 @@ def orbit_cameras(count: int, width: int, height: int) -> Cameras:
     viewmats = []
     for angle in torch.linspace(0, 2 * math.pi, count + 1)[:-1].tolist():
         radius = 60.0 + 20.0 * math.sin(3 * angle)
-        eye = torch.tensor([radius * math.cos(angle), radius * math.sin(angle), 25.0])
-        forward = -eye / eye.norm()
-        right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0]))
-        right = right / right.norm()
-        down = torch.linalg.cross(forward, right)
-        viewmat = torch.eye(4)
-        viewmat[:3, :3] = torch.stack([right, down, forward])
-        viewmat[:3, 3] = -viewmat[:3, :3] @ eye
-        viewmats.append(viewmat)
+        eye = np.array([[radius * math.cos(angle), radius * math.sin(angle), 25.0]])
+        viewmats.append(torch.from_numpy(look_at(eye, np.zeros_like(eye))[0]).float())
     focal = 0.8 * width
     K = torch.tensor([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
     return Cameras(torch.stack(viewmats), K.expand(count, 3, 3).clone(),
@@ -96,7 +91,8 @@ def main() -> None:
 
     t_select, ids = timed(lambda: field.select(camera, None), args.repeats)
     def clca():  # gathering the visible rows is part of CLCA's graph, as in decode
-        out = field.context(field.anchor_features[ids], field.levels[ids], field.anchors[ids], field.grid)
+        graph = field.context.graph(field.levels, field.anchors, ids, field.grid)
+        out = field.context(field.anchor_features[ids], graph)
         out.sum().backward()
         return out
 

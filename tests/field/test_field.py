@@ -16,21 +16,14 @@ from hico_plugin.field import (
 from hico_plugin.field.lod import progressive_interval_ends
 from hico_plugin.field.octree import build_octree, distance_range
 from hico_plugin.model.hico import default_optimizers
+from hico_plugin.scenes.orbits import look_at as orbit_look_at
 
 K = torch.tensor([[100.0, 0.0, 64.0], [0.0, 100.0, 48.0], [0.0, 0.0, 1.0]])
 
 
 def look_at(eye, target=(0.0, 0.0, 0.0)) -> torch.Tensor:
     """world->camera 4x4 (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
-    eye, target = torch.tensor(eye, dtype=torch.float32), torch.tensor(target, dtype=torch.float32)
-    forward = (target - eye) / (target - eye).norm()
-    right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0]))
-    right = right / right.norm()
-    down = torch.linalg.cross(forward, right)
-    viewmat = torch.eye(4)
-    viewmat[:3, :3] = torch.stack([right, down, forward])
-    viewmat[:3, 3] = -viewmat[:3, :3] @ eye
-    return viewmat
+    return torch.from_numpy(orbit_look_at(np.array([eye], dtype=np.float64), np.array([target], dtype=np.float64))[0]).float()
 
 
 def ring_cameras(center=(0.0, 0.0, 0.0), radius=8.0, count=8) -> Cameras:

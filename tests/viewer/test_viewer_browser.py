@@ -24,6 +24,7 @@ import websockets.sync.client
 
 from hico_plugin.viewer import RunViewerState, ViewerConfig, model_render_fn
 from hico_plugin.viewer.demo import DemoDataset, DemoModel
+from helpers_viewer import wait_for
 
 CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser", "google-chrome") if shutil.which(name)), None)
 pytestmark = [
@@ -103,7 +104,7 @@ def test_viewer_in_headless_chromium(tmp_path):
     try:
         page = DevToolsPage(str(tmp_path / "profile"))
         page.call("Page.navigate", url=f"http://127.0.0.1:{viewer.port}")
-        assert _wait(lambda: viewer.clients_seen >= 1 and viewer.render_count >= 1, 90.0), "no client / no render"
+        assert wait_for(lambda: viewer.clients_seen >= 1 and viewer.render_count >= 1, 90.0), "no client / no render"
         picture = None
         for _ in range(30):  # the JPEG reaches the canvas a little after the render
             time.sleep(1.0)
@@ -123,10 +124,3 @@ def test_viewer_in_headless_chromium(tmp_path):
         viewer.stop()
 
 
-def _wait(condition, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.1)
-    return False
