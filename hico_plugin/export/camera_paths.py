@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.cameras import Cameras
+from hico_plugin.data.transform import scene_up
 from hico_plugin.errors import HicoError
 
 
@@ -82,14 +83,6 @@ def look_at(eyes: Tensor, target: Tensor, up: Tensor) -> Tensor:
     return viewmats_from(torch.stack([right, down, forward], -2), eyes)
 
 
-def scene_up(cameras: Cameras) -> Tensor:
-    """The world's up direction as the cameras see it: minus the mean of their image-down axes [3]."""
-    up = -cameras.viewmats[:, 1, :3].to(torch.float64).mean(0)
-    if up.norm() < 1e-6:
-        raise HicoError("camera path: the cameras share no up direction (their image-down axes cancel out)")
-    return up / up.norm()
-
-
 def focus_point(cameras: Cameras) -> Tensor:
     """The point [3] nearest (least squares) to every camera's optical axis: what the cameras look at.
     Cameras that all look the same way have no such point; the mean centre pushed one mean
@@ -110,12 +103,15 @@ def orbit_path(cameras: Cameras, num_frames: int) -> Cameras:
     """``num_frames`` cameras on a circle around the scene centre, looking at it.
 
     The centre is ``focus_point``; the circle lies at the cameras' mean height above it (along
-    ``scene_up``) with their mean horizontal distance as radius, and starts at the bearing of the camera
+    ``data.transform.scene_up``) with their mean horizontal distance as radius, and starts at the bearing of the camera
     farthest from the up axis. Intrinsics and size are the first camera's. Returns Cameras in the input frame.
     """
     if num_frames < 1 or len(cameras) == 0:
         raise HicoError(f"orbit: expected >= 1 frame and >= 1 camera, got {num_frames} frames, {len(cameras)} cameras")
-    up, centre = scene_up(cameras), focus_point(cameras)
+    up, centre = scene_up(cameras.viewmats), focus_point(cameras)
+    # the vertical's sign is the side the cameras' image-up axes lean to; none when they cancel
+    if abs(float(up @ -cameras.viewmats[:, 1, :3].to(torch.float64).mean(0))) < 1e-6:
+        raise HicoError("orbit: the cameras share no up direction (their image-up axes cancel out)")
     offsets = cameras.centers.to(torch.float64) - centre
     heights = offsets @ up
     horizontal = offsets - heights[:, None] * up
