@@ -86,6 +86,9 @@ class BenchConfig(InstantiateConfig):
     """Mesh every cell as hico-export ... mesh does by default and score it against the scene's
     ground-truth surface as hico-eval does (mesh F1 / precision / recall), so a change that costs
     geometry shows in the tables; scenes without a ground-truth surface are skipped."""
+    quality_targets: tuple[float, ...] = ()
+    """Test PSNR levels (dB) of the report's time-to-quality table; default: the lowest final score over
+    the methods of each scene and 1 dB below it."""
     output_dir: Path = Path("bench_out")
     """Where cells/, runs/, results.json and report.md go."""
     device: str = "auto"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -137,6 +138,63 @@ def accuracy_time_table(cells: list[dict[str, Any]]) -> str:
     return _table(header, rows)
 
 
+def reach_seconds(run: list[dict[str, Any]], key: str, target: float) -> float | None:
+    """Training wall time at which one run's cells (its budgets) first reach ``target`` in ``key``:
+    linear between the two evaluations that straddle it, the first evaluation's time when that one
+    already does, None when none does."""
+    before = None
+    for cell in sorted(run, key=lambda c: c["budget"]):
+        value, seconds = cell.get(key), cell["wall_seconds"]
+        if value is None:
+            continue
+        if value >= target:
+            if before is None or value == before[1]:
+                return seconds
+            return before[0] + (target - before[1]) * (seconds - before[0]) / (value - before[1])
+        before = (seconds, value)
+    return None
+
+
+def quality_targets(cells: list[dict[str, Any]], key: str, targets: tuple[float, ...] = ()) -> list[float]:
+    """``targets``, or by default the lowest final mean ``key`` over presets (a level every method
+    reaches on average) and 1 dB below it, rounded to 0.1 dB."""
+    if targets:
+        return sorted(targets)
+    final = _final(cells)
+    means = [sum(v) / len(v) for p in _presets(final) if (v := values_of([c for c in final if c["preset"] == p], key))]
+    if not means:
+        return []
+    low = math.floor(10 * min(means)) / 10
+    return [round(low - 1.0, 1), low]
+
+
+def time_to_quality_table(cells: list[dict[str, Any]], targets: tuple[float, ...] = ()) -> str:
+    """Per scene and preset, the training wall time to reach each quality target (``scene_score``),
+    mean ± std over the seeds that reach it, with how many do."""
+    rows = []
+    for scene in dict.fromkeys(c["scene"] for c in cells):
+        mine = [c for c in cells if c["scene"] == scene]
+        key = scene_score(mine)
+        levels = quality_targets(mine, key, targets)
+        for preset in _presets(mine):
+            runs: dict[Any, list[dict[str, Any]]] = {}
+            for cell in mine:
+                if cell["preset"] == preset:
+                    runs.setdefault(cell.get("seed"), []).append(cell)
+            row = [scene, preset]
+            for level in levels:
+                times = [t for run in runs.values() if (t := reach_seconds(run, key, level)) is not None]
+                row.append(f"{_score_label(key)} {level:.1f}: "
+                           + (f"{format_mean_std(times, 0)} s ({len(times)}/{len(runs)})" if times
+                              else f"not reached (0/{len(runs)})"))
+            rows.append(row)
+    if not rows:
+        return "(no cells)"
+    width = max(len(r) for r in rows)
+    return _table(["scene", "method"] + [f"time to target {i + 1}" for i in range(width - 2)],
+                  [r + [""] * (width - len(r)) for r in rows])
+
+
 def stage_means(cells: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """preset -> stage -> ms per step, averaged over scenes at the largest budget."""
     out = {}
@@ -179,8 +237,10 @@ def component_costs(cells: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def write_plots(cells: list[dict[str, Any]], out_dir: Path) -> list[str]:
-    """PNG figures; [] when matplotlib is not installed."""
+def write_plots(cells: list[dict[str, Any]], out_dir: Path, targets: tuple[float, ...] = ()) -> list[str]:
+    """PNG figures; [] when matplotlib is not installed. The PSNR figure is the time-to-quality view:
+    each scene's score (``scene_score``) against training wall time, with the quality targets of
+    ``time_to_quality_table`` as dotted lines."""
     try:
         import matplotlib
 
@@ -189,24 +249,34 @@ def write_plots(cells: list[dict[str, Any]], out_dir: Path) -> list[str]:
     except ImportError:
         return []
     scenes = list(dict.fromkeys(c["scene"] for c in cells))
-    names = []
+    names, colours = [], {}
     for key, label, name in (("psnr", "test PSNR (dB)", "psnr_vs_time.png"),
                              ("normal_error_deg", "normal error (deg)", "normal_vs_time.png")):
         if all(c.get(key) is None for c in cells):
             continue
         fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
         for ax, scene in zip(axes[0], scenes):
+            scene_key = scene_score([c for c in cells if c["scene"] == scene]) if key == "psnr" else key
             for preset in _presets(cells):
-                mine = [c for c in cells if c["scene"] == scene and c["preset"] == preset and c.get(key) is not None]
-                ax.plot([c["wall_seconds"] for c in mine], [c[key] for c in mine], "o-", label=preset)
+                for number, seed in enumerate(dict.fromkeys(c.get("seed") for c in cells)):  # a curve per run
+                    mine = sorted((c for c in cells if c["scene"] == scene and c["preset"] == preset
+                                   and c.get("seed") == seed and c.get(scene_key) is not None),
+                                  key=lambda c: c["budget"])
+                    ax.plot([c["wall_seconds"] for c in mine], [c[scene_key] for c in mine], "o-", alpha=0.8,
+                            label=preset if number == 0 else "_nolegend_",
+                            color=colours.setdefault(preset, f"C{len(colours)}"))
+            if key == "psnr":
+                for level in quality_targets([c for c in cells if c["scene"] == scene], scene_key, targets):
+                    ax.axhline(level, color="grey", linestyle=":", linewidth=1)
             front = sorted((c for c in cells if c["scene"] == scene and c.get("pareto") and c.get(key) is not None),
                            key=lambda c: c["wall_seconds"])
             if key == "psnr" and front:
-                ax.step([c["wall_seconds"] for c in front], [c["psnr"] for c in front], "k--", where="post",
+                ax.step([c["wall_seconds"] for c in front], [c[scene_key] for c in front], "k--", where="post",
                         linewidth=1, label="Pareto front")
-                ax.scatter([c["wall_seconds"] for c in front], [c["psnr"] for c in front], s=120,
+                ax.scatter([c["wall_seconds"] for c in front], [c[scene_key] for c in front], s=120,
                            facecolors="none", edgecolors="k")
-            ax.set(title=scene, xlabel="training wall time (s)", ylabel=label)
+            ax.set(title=scene, xlabel="training wall time (s)",
+                   ylabel=f"test {_score_label(scene_key)} (dB)" if key == "psnr" else label)
             ax.grid(alpha=0.3)
         axes[0][0].legend(fontsize=8)
         fig.tight_layout()
@@ -273,6 +343,12 @@ def render_report(results: dict[str, Any], plots: list[str] | None) -> str:
              ("Mean ± std over seeds; Δ = difference to the first method ± its standard error, "
               "* = beyond two standard errors (nothing is marked with one seed)."), "",
              ablation_table(cells), "",
+             "## Time to quality", "",
+             ("Training wall time until the test score (colour-corrected on a scene with per-photo exposure) "
+              "first reaches each level, linear between the two evaluations around it; mean ± std over the "
+              "seeds that reach it (how many do in brackets). Levels: --quality-targets, else the lowest "
+              "final score over the methods and 1 dB below it. The PSNR figure plots the same curves."), "",
+             time_to_quality_table(cells, tuple(bench.get("quality_targets") or ())), "",
              "## Accuracy vs time", "", "★ = on the (wall time, PSNR) Pareto front of its scene.", "",
              accuracy_time_table(cells), "",
              "## Where a training step's time goes (ms per step, mean over the run)", "",
@@ -298,7 +374,7 @@ def write_outputs(bench: Any, cells: list[dict[str, Any]], out_dir: Path, plots:
     out_dir.mkdir(parents=True, exist_ok=True)
     results = build_results(bench, cells)
     write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2, allow_nan=True) + "\n")
-    names = write_plots(results["cells"], out_dir) if plots else []
+    names = write_plots(results["cells"], out_dir, tuple(results["bench"].get("quality_targets") or ())) if plots else []
     write_text_atomic(out_dir / "report.md", render_report(results, names))
     return results
 

@@ -56,6 +56,7 @@ def test_report_contents(bench_dir):
     assert "## Ablation" in report and ("| method | tiny PSNR | Δ vs octree-gs | tiny normal err (°) | tiny mesh F1 | "
                                         "train time (s) | ms / step |") in report
     assert "## Accuracy vs time" in report and "★" in report
+    assert "## Time to quality" in report and "| tiny | hico-gs | PSNR " in report
     assert "## Where a training step's time goes" in report and "| clca |" in report
     assert "CLCA + DNGC (hico-gs)" in report
     cells = load_results(bench_dir)["cells"]
@@ -245,3 +246,25 @@ def test_seeds_multiply_the_runs(tmp_path):
     assert bench_cli.parse(["--seeds", "0", "1", "2"]).seeds == (0, 1, 2)
     with pytest.raises(HicoError, match="--seeds"):
         BenchConfig(seeds=()).resolved()
+
+
+def test_time_to_quality_interpolates_between_evaluations():
+    from hico_plugin.bench.report import quality_targets, reach_seconds, time_to_quality_table
+
+    def run(preset, seed, points):
+        return [{"preset": preset, "scene": "tiny", "seed": seed, "budget": 100 * (i + 1), "psnr": p,
+                 "wall_seconds": t} for i, (t, p) in enumerate(points)]
+
+    fast = run("fast", 0, [(10.0, 20.0), (20.0, 24.0), (40.0, 26.0)])
+    assert reach_seconds(fast, "psnr", 22.0) == pytest.approx(15.0)  # halfway between 20 and 24 dB
+    assert reach_seconds(fast, "psnr", 19.0) == 10.0  # already reached at the first evaluation
+    assert reach_seconds(fast, "psnr", 26.5) is None
+    slow = run("slow", 0, [(30.0, 20.0), (60.0, 23.0), (90.0, 25.05)])
+    cells = fast + slow + run("fast", 1, [(12.0, 21.0), (22.0, 25.0), (44.0, 27.0)])
+    # default levels: the lowest final mean over methods (slow: 25.05 -> 25.0) and 1 dB below
+    assert quality_targets(cells, "psnr") == [24.0, 25.0]
+    assert quality_targets(cells, "psnr", (26.0, 22.0)) == [22.0, 26.0]
+    table = time_to_quality_table(cells, (26.0,))
+    # fast: seed 0 reaches 26 dB at 40 s, seed 1 between 22 s (25 dB) and 44 s (27 dB) at 33 s
+    assert "| tiny | fast | PSNR 26.0: 36 ± 5 s (2/2) |" in table
+    assert "| tiny | slow | PSNR 26.0: not reached (0/1) |" in table
