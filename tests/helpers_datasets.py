@@ -77,3 +77,21 @@ def write_meganerf(scene: Path, out: Path, val_every: int = 4) -> dict[str, str]
         shutil.copy(scene / "images" / image.name, out / split / "rgbs" / f"{i:06d}.png")
         names[f"{split}/rgbs/{i:06d}.png"] = image.name
     return names
+
+
+def write_without_tracks(source: Path, out: Path) -> Path:
+    """A copy of the COLMAP dataset ``source`` whose points carry no tracks and whose images list no
+    2D points, as many tools export a model (text format); returns ``out``."""
+    import pycolmap
+
+    shutil.copytree(source, out, ignore=shutil.ignore_patterns("sparse"))
+    model = out / "sparse" / "0"
+    model.mkdir(parents=True)
+    pycolmap.Reconstruction(str(source / "sparse" / "0")).write_text(str(model))
+    points = (model / "points3D.txt").read_text().splitlines()  # ID X Y Z R G B ERROR, then the track
+    (model / "points3D.txt").write_text("\n".join(line if line.startswith("#") else " ".join(line.split()[:8])
+                                                  for line in points) + "\n")
+    lines = (model / "images.txt").read_text().splitlines()  # per image: a pose line, then its 2D points
+    comments, body = [x for x in lines if x.startswith("#")], [x for x in lines if not x.startswith("#")]
+    (model / "images.txt").write_text("\n".join(comments + [x for pose in body[::2] for x in (pose, "")]) + "\n")
+    return out

@@ -18,6 +18,7 @@ from hico_plugin.model.effects import analyze_effects, parse_effects
 from hico_plugin.model.effects.exposure import AffineColour
 from hico_plugin.scenes import SCENES
 from hico_plugin.scenes.generate import generate_scene
+from helpers_datasets import write_without_tracks
 
 SMALL = dict(num_views=16, width=96, height=72, pixel_samples=1)
 # effect declared by a scene -> the analysis finding that must agree with it. Sensor noise is left
@@ -56,6 +57,20 @@ def test_exposure_gains_match_the_generator():
     error = np.abs(gains - true)  # stops, per channel
     assert error.max() < 0.1 and np.median(error) < 0.04
     assert per_image[0]["image"] == dataset.image_names[0]
+
+
+def test_exposure_is_measured_when_the_colmap_points_carry_no_tracks(tmp_path):
+    path = generate_scene("pagoda", num_views=40, width=192, height=144, pixel_samples=1,
+                          effects={"exposure": True, "sky": True, "sensor_noise": False})
+    dataset = DataParserConfig(data=write_without_tracks(path, tmp_path / "no_tracks")).setup()
+    assert len(dataset.tracks) > 0 and len(dataset.tracks.observations()[0]) == 0
+    tracks = dataset_tracks(dataset)
+    assert tracks.source == "depth buffer"
+    true = np.log2(np.array(json.loads((path / "scene.json").read_text())["exposure_gains"]))
+    gains, _ = exposure_gains(dataset, tracks)
+    assert np.abs(gains - (true - true.mean(axis=0))).max() < 0.1  # stops, every photo and channel
+    report = analyze_effects(dataset)
+    assert report.present("exposure"), report.effects["exposure"].reason
 
 
 def test_appearance_starts_from_the_measured_gains():
