@@ -1,6 +1,7 @@
-"""``hico-render --load-config RUN/config.yml {test|orbit|interpolate} [--outputs ...]``: frames and videos.
+"""``hico-render --load-config RUN/config.yml {test|orbit|interpolate|camera-path} [--outputs ...]``: frames and videos.
 
     hico-render --load-config outputs/city-block/hico-gs-lite/config.yml orbit --outputs rgb depth level
+    hico-render --load-config RUN/config.yml camera-path --camera-path camera_path.json
     hico-render --load-config RUN/config.yml test --outputs rgb normal depth-normal
 
 Renders at evaluation LOD (every level active) through the model's display outputs (render_for_display), one PNG per frame
@@ -23,7 +24,9 @@ import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml
 from hico_plugin.cli import run_cli
 from hico_plugin.errors import HicoError
 from hico_plugin.engine import load_run
+from hico_plugin.data.transform import SceneTransform
 from hico_plugin.export import interpolate_path, orbit_path
+from hico_plugin.export.camera_path_file import nerfstudio_transform, read_camera_path
 from hico_plugin.export.frames import Mp4Writer, write_png
 from hico_plugin.visualization.options import COLORMAP_NAMES, RenderOptions
 from hico_plugin.visualization.visualize import visualize
@@ -49,9 +52,9 @@ class FrameRequest(RenderOptions):
 class RenderArgs:
     """Render a trained HiCo-GS run along a camera path: PNG frames per output and MP4 videos."""
 
-    path: tyro.conf.Positional[Literal["test", "orbit", "interpolate"]]
-    """Camera path: the test views, an orbit around the scene centre, or a smooth path through the
-    training cameras."""
+    path: tyro.conf.Positional[Literal["test", "orbit", "interpolate", "camera-path"]]
+    """Camera path: the test views, an orbit around the scene centre, a smooth path through the
+    training cameras, or the frames of a nerfstudio camera_path.json (--camera-path)."""
     load_config: Path
     """The run's config.yml (written by hico-train next to its checkpoints)."""
     outputs: tuple[OutputName, ...] = ("rgb",)
@@ -66,6 +69,12 @@ class RenderArgs:
     """Resolution factor relative to the training cameras."""
     colormap: str = "turbo"
     """Colormap of scalar outputs (turbo, viridis, inferno, magma, jet, gray)."""
+    camera_path: Path | None = None
+    """camera-path: a nerfstudio camera_path.json (poses in the dataset's source frame; its size, fov
+    and fps are used, --num-frames and --fps are not)."""
+    nerfstudio_transforms: Path | None = None
+    """camera-path: the dataparser_transforms.json of the nerfstudio run that wrote --camera-path
+    (nerfstudio writes its own normalised frame; this maps it to the dataset's source frame)."""
     checkpoint: Path | None = None
     """Checkpoint to render instead of the run's newest."""
     device: str | None = None
@@ -95,14 +104,25 @@ def main(args: RenderArgs) -> Path:
         raise HicoError(f"--colormap: '{args.colormap}' is not one of {', '.join(COLORMAP_NAMES)}")
     if args.scale <= 0 or args.fps <= 0:
         raise HicoError(f"--scale / --fps: expected > 0, got {args.scale} / {args.fps}")
+    fps = args.fps
+    if args.path == "camera-path":  # the file is checked before the run loads (its frame comes with it)
+        if args.camera_path is None:
+            raise HicoError("camera-path: --camera-path FILE is required (a nerfstudio camera_path.json)")
+        nerfstudio = None if args.nerfstudio_transforms is None else nerfstudio_transform(args.nerfstudio_transforms)
+        read_camera_path(args.camera_path, SceneTransform.identity(), nerfstudio)
     run = load_run(args.load_config, args.checkpoint, args.device)
-    cameras = [c.scaled(args.scale) for c in path_cameras(run.dataset, args.path, args.num_frames)]
+    if args.path == "camera-path":
+        frames, fps = read_camera_path(args.camera_path, run.dataset.transform, nerfstudio)
+        cameras = [Camera(frames.viewmats[i], frames.Ks[i], int(frames.widths[i]), int(frames.heights[i]), -1)
+                   .scaled(args.scale) for i in range(len(frames))]  # index -1: no training photo's appearance
+    else:
+        cameras = [c.scaled(args.scale) for c in path_cameras(run.dataset, args.path, args.num_frames)]
     names = list(dict.fromkeys(args.outputs))
     options = {name: RenderOptions(output=name.replace("-", "_"), colormap=args.colormap,
                                    num_levels=run.model.field.grid.num_levels) for name in names}
     request = FrameRequest(outputs=tuple(sorted({r for o in options.values() for r in o.required_outputs})))
     output_dir = args.output_dir or run.run_dir / "renders" / args.path
-    videos = {name: Mp4Writer(output_dir / f"{name}.mp4", args.fps, cameras[0].width, cameras[0].height)
+    videos = {name: Mp4Writer(output_dir / f"{name}.mp4", fps, cameras[0].width, cameras[0].height)
               for name in names} if len({(c.width, c.height) for c in cameras}) == 1 else {}
     start = time.perf_counter()
     try:

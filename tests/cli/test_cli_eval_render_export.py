@@ -16,7 +16,9 @@ from hico_plugin.cli import export as export_cli
 from hico_plugin.cli import render as render_cli
 from hico_plugin.engine import load_config, save_config
 from hico_plugin.engine import load_run
+from hico_plugin.cameras import Camera, Cameras
 from hico_plugin.export import read_ply
+from hico_plugin.export.camera_path_file import write_camera_path
 from hico_plugin.field.field import FieldConfig
 from hico_plugin.export.camera_paths import quat_to_rotmat, rotmat_to_quat
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
@@ -95,6 +97,35 @@ def test_render_test_path_matches_the_model_render(run_dir, tmp_path):
     picture = cv2.imread(str(frames[1]))[..., ::-1]
     assert picture.shape == (24, 32, 3)
     assert np.abs(picture.astype(int) - expected).max() <= 1
+
+
+def test_render_camera_path_file_renders_its_frames_where_they_were_saved(run_dir, tmp_path, capsys):
+    run = load_run(run_dir / "config.yml")
+    ids = torch.as_tensor([int(i) for i in run.dataset.test_indices] + [int(run.dataset.train_indices[0])])
+    cams = run.dataset.cameras
+    path = write_camera_path(tmp_path / "camera_path.json", Cameras(cams.viewmats[ids], cams.Ks[ids], cams.widths[ids],
+                                                                    cams.heights[ids]), run.dataset.transform, fps=12)
+    out = render_cli.main(render_cli.parse(["camera-path", "--load-config", str(run_dir / "config.yml"),
+                                            "--camera-path", str(path), "--output-dir", str(tmp_path / "out")]))
+    frames = sorted((out / "rgb").iterdir())
+    assert len(frames) == 3 and "3 camera-path frames" in capsys.readouterr().out
+    camera = cams[int(ids[2])]  # a training view: rendered without its photo's appearance (index -1)
+    with torch.no_grad():
+        rendered, _ = run.model.render(Camera(camera.viewmat, camera.K, camera.width, camera.height, -1), ("rgb",))
+    expected = (rendered.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    assert np.abs(cv2.imread(str(frames[2]))[..., ::-1].astype(int) - expected).max() <= 1
+
+
+def test_render_camera_path_refuses_before_loading(run_dir, tmp_path, capsys):
+    bad = tmp_path / "camera_path.json"
+    bad.write_text(json.dumps({"render_width": 64, "render_height": 48, "fps": 24, "camera_path": [{"fov": 50}]}))
+    for extra, message in (([], "error: camera-path: --camera-path FILE is required"),
+                           (["--camera-path", str(bad)], "error: camera_path.json: camera_path[0]: expected an object with")):
+        with pytest.raises(SystemExit) as exit_info:
+            render_cli.entrypoint(["camera-path", "--load-config", str(run_dir / "config.yml"), *extra])
+        assert exit_info.value.code != 0
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(message), lines
 
 
 def test_export_gaussians_in_colmap_frame_with_drops_counted(run_dir, tmp_path, capsys):

@@ -1,0 +1,156 @@
+"""nerfstudio's ``camera_path.json``: the file its viewer's render panel saves and ``ns-render
+camera-path`` reads, read and written with the same keys so a path made in either tool renders in both.
+
+What is read (nerfstudio's ``get_path_from_json``): ``render_width`` / ``render_height`` (pixels),
+``fps``, and ``camera_path``: one entry per frame with ``camera_to_world`` (a 4x4 matrix, 16 numbers
+row by row, OpenGL axes: x right, y up, z backwards) and ``fov`` (vertical field of view in degrees;
+the focal length is ``render_height / 2 / tan(fov / 2)``, the principal point the image centre).
+``camera_type`` must be ``perspective`` when present. ``keyframes``, ``seconds`` and the panel's other
+settings are written for the viewer and ignored when rendering.
+
+Frames. Poses in the file are in the dataset's source frame (the COLMAP / transforms.json world),
+so they mean the same place whatever normalisation a run chose. nerfstudio writes its own normalised
+frame; ``nerfstudio_transform`` (its run's ``dataparser_transforms.json``: ``transform`` [3, 4] and
+``scale``, ``x_ns = scale * (transform @ [x; 1])``) maps such a file to the source frame. Cameras
+inside this project are world->camera with OpenCV axes in the run's normalised frame (``viewmat``).
+
+The file is untrusted: it is read as JSON only, and every key that is missing or malformed is a
+HicoError naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hico_plugin.cameras import Cameras
+from hico_plugin.data.transform import SceneTransform
+from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.errors import HicoError
+
+MAX_FILE_BYTES = 64 * 1024 * 1024
+"""A camera path of 100,000 frames is about 40 MB; anything larger is not a camera path."""
+
+_GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))  # flips y and z (an involution)
+
+
+def _number(value: Any, where: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise HicoError(f"{where}: expected a finite number, got {json.dumps(value)[:40]}")
+    if positive and value <= 0:
+        raise HicoError(f"{where}: expected a number > 0, got {value}")
+    return float(value)
+
+
+def _matrix(value: Any, where: str, rows: int, cols: int) -> Tensor:
+    """A rows x cols matrix given flat (nerfstudio's camera_to_world) or as nested rows."""
+    flat = [x for row in value for x in row] if isinstance(value, list) and value and isinstance(value[0], list) else value
+    if not isinstance(flat, list) or len(flat) != rows * cols:
+        size = len(flat) if isinstance(flat, list) else type(value).__name__
+        raise HicoError(f"{where}: expected {rows * cols} numbers ({rows}x{cols}), got {size}")
+    return torch.tensor([_number(x, f"{where}[{i}]") for i, x in enumerate(flat)], dtype=torch.float64).view(rows, cols)
+
+
+def _load_json(path: Path, what: str) -> dict[str, Any]:
+    try:
+        size = path.stat().st_size
+    except OSError as err:
+        raise HicoError(f"{path}: cannot read the {what} ({err.strerror})") from None
+    if size > MAX_FILE_BYTES:
+        raise HicoError(f"{path}: {size} bytes is too large for a {what} (at most {MAX_FILE_BYTES})")
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise HicoError(f"{path}: not a {what} (invalid JSON: {err})") from None
+    if not isinstance(document, dict):
+        raise HicoError(f"{path}: expected a JSON object, got {type(document).__name__}")
+    return document
+
+
+def nerfstudio_transform(path: Path) -> tuple[Tensor, float]:
+    """(transform [3, 4] float64, scale) of nerfstudio's ``dataparser_transforms.json``."""
+    document = _load_json(path, "nerfstudio dataparser_transforms.json")
+    name = path.name
+    if "transform" not in document or "scale" not in document:
+        raise HicoError(f"{name}: expected the keys 'transform' and 'scale'")
+    return _matrix(document["transform"], f"{name}: transform", 3, 4), _number(document["scale"], f"{name}: scale", True)
+
+
+def read_camera_path(path: str | Path, transform: SceneTransform,
+                     nerfstudio: tuple[Tensor, float] | None = None) -> tuple[Cameras, float]:
+    """(cameras [N] in the run's normalised frame, frames per second) of the camera_path.json ``path``.
+    ``nerfstudio``: a ``nerfstudio_transform`` when the file was written by nerfstudio (its frame)."""
+    path = Path(path)
+    document = _load_json(path, "camera_path.json")
+    name = path.name
+    for key in ("render_width", "render_height", "fps", "camera_path"):
+        if key not in document:
+            raise HicoError(f"{name}: missing key '{key}' (expected nerfstudio's camera_path.json)")
+    camera_type = document.get("camera_type", "perspective")
+    if camera_type != "perspective":
+        raise HicoError(f"{name}: camera_type: only 'perspective' is rendered, got {json.dumps(camera_type)[:40]}")
+    width = _number(document["render_width"], f"{name}: render_width", True)
+    height = _number(document["render_height"], f"{name}: render_height", True)
+    if width != int(width) or height != int(height):
+        raise HicoError(f"{name}: render_width / render_height: expected whole pixels, got {width} x {height}")
+    fps = _number(document["fps"], f"{name}: fps", True)
+    frames = document["camera_path"]
+    if not isinstance(frames, list) or not frames:
+        raise HicoError(f"{name}: camera_path: expected a non-empty list of frames")
+    c2ws, focals = [], []
+    for i, frame in enumerate(frames):
+        where = f"{name}: camera_path[{i}]"
+        if not isinstance(frame, dict) or "camera_to_world" not in frame or "fov" not in frame:
+            raise HicoError(f"{where}: expected an object with 'camera_to_world' and 'fov'")
+        c2w = _matrix(frame["camera_to_world"], f"{where}.camera_to_world", 4, 4)
+        rotation = c2w[:3, :3]
+        if (rotation @ rotation.T - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3 or torch.det(rotation) < 0:
+            raise HicoError(f"{where}.camera_to_world: its 3x3 part is not a rotation")
+        fov = _number(frame["fov"], f"{where}.fov")
+        if not 0 < fov < 180:
+            raise HicoError(f"{where}.fov: expected a vertical field of view in degrees in (0, 180), got {fov}")
+        c2ws.append(c2w)
+        focals.append(height / 2 / math.tan(math.radians(fov) / 2))
+    c2w = torch.stack(c2ws) @ _GL_TO_CV
+    if nerfstudio is not None:  # nerfstudio's frame -> the source frame
+        ns, scale = nerfstudio
+        inverse = torch.linalg.inv(torch.cat([ns, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)]))
+        c2w[:, :3, 3] = c2w[:, :3, 3] / scale
+        c2w = inverse @ c2w
+    viewmats = transform.viewmats_from_colmap(torch.linalg.inv(c2w)).float()
+    return _cameras(viewmats, torch.tensor(focals), int(width), int(height)), fps
+
+
+def _cameras(viewmats: Tensor, focals: Tensor, width: int, height: int) -> Cameras:
+    count = len(viewmats)
+    Ks = torch.zeros(count, 3, 3)
+    Ks[:, 0, 0] = Ks[:, 1, 1] = focals.float()
+    Ks[:, 0, 2], Ks[:, 1, 2], Ks[:, 2, 2] = width / 2, height / 2, 1.0
+    return Cameras(viewmats, Ks, torch.full((count,), width), torch.full((count,), height))
+
+
+def camera_path_document(cameras: Cameras, transform: SceneTransform, fps: float,
+                         keyframes: list[dict[str, Any]] | None = None, **settings: Any) -> dict[str, Any]:
+    """The camera_path.json of ``cameras`` [N] (normalised frame, one size, square pixels assumed: the
+    vertical field of view is written): poses in the source frame, OpenGL axes. ``keyframes`` and
+    ``settings`` (e.g. ``seconds``, ``is_cycle``) are stored as given for the viewer."""
+    width, height = int(cameras.widths[0]), int(cameras.heights[0])
+    c2w = torch.linalg.inv(transform.viewmats_to_colmap(cameras.viewmats.double())) @ _GL_TO_CV
+    fovs = torch.rad2deg(2 * torch.atan(height / 2 / cameras.Ks[:, 1, 1].double()))
+    frames = [{"camera_to_world": m.flatten().tolist(), "fov": float(f), "aspect": width / height}
+              for m, f in zip(c2w, fovs)]
+    return {"camera_type": "perspective", "render_width": width, "render_height": height, "fps": float(fps),
+            "seconds": len(frames) / float(fps), **settings, "keyframes": keyframes or [], "camera_path": frames}
+
+
+def write_camera_path(path: str | Path, cameras: Cameras, transform: SceneTransform, fps: float,
+                      keyframes: list[dict[str, Any]] | None = None, **settings: Any) -> Path:
+    """Write ``camera_path_document`` to ``path`` atomically; returns the path."""
+    path = Path(path)
+    write_text_atomic(path, json.dumps(camera_path_document(cameras, transform, fps, keyframes, **settings), indent=1) + "\n")
+    return path
