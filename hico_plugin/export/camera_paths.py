@@ -151,6 +151,50 @@ def interpolate_path(cameras: Cameras, num_frames: int) -> Cameras:
                    cameras.widths[:1].expand(num_frames).clone(), cameras.heights[:1].expand(num_frames).clone())
 
 
+def keyframe_path(keyframes: Cameras, seconds: Tensor, fps: float, loop: bool = False, tension: float = 0.0) -> Cameras:
+    """The cameras of a path through ``keyframes`` [K] at ``fps``: keyframe i is reached at the sum of
+    ``seconds`` [K] before it (``seconds[i]``: time from keyframe i to the next; the last one's counts
+    only when ``loop`` returns to the first). Centres follow a cardinal spline in time (Catmull-Rom at
+    ``tension`` 0: through every keyframe, velocity continuous in m/s), rotations are slerped and the
+    focal lengths lerped between neighbouring keyframes; every frame has the first keyframe's size."""
+    count = len(keyframes)
+    if count == 0 or fps <= 0 or bool((seconds[: count if loop else count - 1] <= 0).any()):
+        raise HicoError(f"camera path: expected >= 1 keyframe, fps > 0 and every transition > 0 s, got "
+                        f"{count} keyframes, fps {fps}, transitions {seconds.tolist()}")
+    if count == 1:
+        return _with_intrinsics(keyframes.viewmats[:1], keyframes, torch.zeros(1, dtype=torch.long))
+    segments = count if loop else count - 1
+    durations = seconds[:segments].to(torch.float64)
+    starts = torch.cat([torch.zeros(1, dtype=torch.float64), durations.cumsum(0)])
+    total = float(starts[-1])
+    num_frames = max(int(round(total * fps)) + (0 if loop else 1), 2)
+    t = torch.arange(num_frames, dtype=torch.float64) / fps
+    t = t.clamp(max=total) if not loop else t
+    segment = (torch.searchsorted(starts, t, right=True) - 1).clamp(0, segments - 1)
+    u = ((t - starts[segment]) / durations[segment]).clamp(0, 1)
+    keys = torch.arange(count)
+    neighbour = (lambda i: i % count) if loop else (lambda i: i.clamp(0, count - 1))
+    span = (lambda i: i % segments) if loop else (lambda i: i.clamp(0, segments - 1))
+    centres = keyframes.centers.to(torch.float64)
+    # velocity (per second) at each keyframe: the mean of its two neighbouring chords' velocities, so the
+    # speed has no jump where a short transition meets a long one
+    before = (centres[keys] - centres[neighbour(keys - 1)]) / durations[span(keys - 1)][:, None]
+    after = (centres[neighbour(keys + 1)] - centres[keys]) / durations[span(keys)][:, None]
+    velocity = (1 - tension) * (before + after) / 2
+    following = (segment + 1) % count
+    b, c, d = centres[segment], centres[following], durations[segment][:, None]
+    m0, m1 = velocity[segment] * d, velocity[following] * d  # Hermite tangents in the segment's own unit
+    u1 = u[:, None]
+    h00, h10, h01, h11 = 2 * u1**3 - 3 * u1**2 + 1, u1**3 - 2 * u1**2 + u1, -2 * u1**3 + 3 * u1**2, u1**3 - u1**2
+    positions = h00 * b + h10 * m0 + h01 * c + h11 * m1
+    quats = rotmat_to_quat(keyframes.viewmats[:, :3, :3].to(torch.float64))
+    rotations = quat_to_rotmat(quat_slerp(quats[segment], quats[following], u))
+    Ks = _Ks_at_first_size(keyframes)
+    K = Ks[segment] + u[:, None, None] * (Ks[following] - Ks[segment])
+    return Cameras(viewmats_from(rotations, positions).to(keyframes.viewmats.dtype), K.to(keyframes.Ks.dtype),
+                   keyframes.widths[:1].expand(num_frames).clone(), keyframes.heights[:1].expand(num_frames).clone())
+
+
 def _Ks_at_first_size(cameras: Cameras) -> Tensor:
     """Every camera's K [C, 3, 3] rescaled to the first camera's width and height (float64)."""
     Ks = cameras.Ks.to(torch.float64).clone()

@@ -22,7 +22,7 @@ from hico_plugin.export import (
     read_ply,
     write_ply,
 )
-from hico_plugin.export.camera_paths import quat_slerp, quat_to_rotmat, rotmat_to_quat
+from hico_plugin.export.camera_paths import keyframe_path, quat_slerp, quat_to_rotmat, rotmat_to_quat
 from hico_plugin.export.frames import Mp4Writer, write_png
 from hico_plugin.export.gaussians import INRIA_FIELDS, SH_C0
 from hico_plugin.scenes.orbits import intrinsics, look_at
@@ -214,6 +214,29 @@ def test_interpolate_rescales_intrinsics_to_the_first_size():
     path = interpolate_path(cams, 3)
     assert path.widths.tolist() == [40] * 3
     torch.testing.assert_close(path.Ks[2], ring.Ks[1])
+
+
+def test_keyframe_path_reaches_each_keyframe_at_its_time_smoothly():
+    keys = _ring(4, radius=2.0, height=0.5, centre=np.zeros(3))
+    seconds = torch.tensor([1.0, 0.5, 1.5, 2.0])  # the last counts only for a loop
+    path = keyframe_path(keys, seconds, fps=10)
+    assert len(path) == 31 and path.widths.tolist() == [40] * 31  # 3 s at 10 fps, both ends included
+    torch.testing.assert_close(path.viewmats[[0, 10, 15, 30]], keys.viewmats, atol=1e-5, rtol=0)
+    rot = path.viewmats[:, :3, :3].double()
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(31, 3, 3),
+                               atol=1e-6, rtol=0)
+    # the velocity (m/s) has no jump where the 1 s transition meets the 0.5 s one (keyframe 1, t = 1 s)
+    fine = keyframe_path(keys, seconds, fps=1000).centers.double()
+    velocity = (fine[1:] - fine[:-1]) * 1000
+    assert (velocity[1000] - velocity[999]).norm() < 0.01 * velocity[999].norm()
+    loop = keyframe_path(keys, seconds, fps=10, loop=True)
+    assert len(loop) == 50  # 5 s, the return to the first keyframe is the next frame after the last
+    torch.testing.assert_close(loop.viewmats[[0, 10, 15, 30]], keys.viewmats, atol=1e-5, rtol=0)
+    assert (loop.centers[-1] - keys.centers[0]).norm() < 0.45
+    single = keyframe_path(Cameras(keys.viewmats[:1], keys.Ks[:1], keys.widths[:1], keys.heights[:1]), seconds[:1], 10)
+    assert len(single) == 1
+    with pytest.raises(HicoError, match="transition"):
+        keyframe_path(keys, torch.tensor([1.0, 0.0, 1.0, 1.0]), fps=10)
 
 
 def test_png_and_mp4_writers(tmp_path):
