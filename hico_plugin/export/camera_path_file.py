@@ -81,14 +81,34 @@ def nerfstudio_transform(path: Path) -> tuple[Tensor, float]:
     return _matrix(document["transform"], f"{name}: transform", 3, 4), _number(document["scale"], f"{name}: scale", True)
 
 
-def read_camera_path(path: str | Path, transform: SceneTransform,
-                     nerfstudio: tuple[Tensor, float] | None = None) -> tuple[Cameras, float]:
-    """(cameras [N] in the run's normalised frame, frames per second) of the camera_path.json ``path``.
-    ``nerfstudio``: a ``nerfstudio_transform`` when the file was written by nerfstudio (its frame)."""
-    path = Path(path)
-    document = _load_json(path, "camera_path.json")
-    name = path.name
-    for key in ("render_width", "render_height", "fps", "camera_path"):
+def _source_c2w(entries: list[Any], key: str, where: str, nerfstudio: tuple[Tensor, float] | None) -> tuple[Tensor, Tensor]:
+    """(camera->world [N, 4, 4] float64 in the source frame with OpenCV axes, vertical fov [N] in
+    degrees) of the file entries' ``key`` matrices (OpenGL axes) and ``fov`` values."""
+    c2ws, fovs = [], []
+    for i, entry in enumerate(entries):
+        here = f"{where}[{i}]"
+        if not isinstance(entry, dict) or key not in entry or "fov" not in entry:
+            raise HicoError(f"{here}: expected an object with '{key}' and 'fov'")
+        c2w = _matrix(entry[key], f"{here}.{key}", 4, 4)
+        rotation = c2w[:3, :3]
+        if (rotation @ rotation.T - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3 or torch.det(rotation) < 0:
+            raise HicoError(f"{here}.{key}: its 3x3 part is not a rotation")
+        fov = _number(entry["fov"], f"{here}.fov")
+        if not 0 < fov < 180:
+            raise HicoError(f"{here}.fov: expected a vertical field of view in degrees in (0, 180), got {fov}")
+        c2ws.append(c2w)
+        fovs.append(fov)
+    c2w = torch.stack(c2ws) @ _GL_TO_CV
+    if nerfstudio is not None:  # nerfstudio's frame -> the source frame
+        ns, scale = nerfstudio
+        inverse = torch.linalg.inv(torch.cat([ns, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)]))
+        c2w[:, :3, 3] = c2w[:, :3, 3] / scale
+        c2w = inverse @ c2w
+    return c2w, torch.tensor(fovs, dtype=torch.float64)
+
+
+def _size_and_fps(document: dict[str, Any], name: str) -> tuple[int, int, float]:
+    for key in ("render_width", "render_height", "fps"):
         if key not in document:
             raise HicoError(f"{name}: missing key '{key}' (expected nerfstudio's camera_path.json)")
     camera_type = document.get("camera_type", "perspective")
@@ -98,32 +118,70 @@ def read_camera_path(path: str | Path, transform: SceneTransform,
     height = _number(document["render_height"], f"{name}: render_height", True)
     if width != int(width) or height != int(height):
         raise HicoError(f"{name}: render_width / render_height: expected whole pixels, got {width} x {height}")
-    fps = _number(document["fps"], f"{name}: fps", True)
+    return int(width), int(height), _number(document["fps"], f"{name}: fps", True)
+
+
+def _normalised_cameras(c2w: Tensor, fovs: Tensor, width: int, height: int, transform: SceneTransform) -> Cameras:
+    viewmats = transform.viewmats_from_colmap(torch.linalg.inv(c2w)).float()
+    return _cameras(viewmats, height / 2 / torch.tan(torch.deg2rad(fovs) / 2), width, height)
+
+
+def read_camera_path(path: str | Path, transform: SceneTransform,
+                     nerfstudio: tuple[Tensor, float] | None = None) -> tuple[Cameras, float]:
+    """(cameras [N] in the run's normalised frame, frames per second) of the camera_path.json ``path``.
+    ``nerfstudio``: a ``nerfstudio_transform`` when the file was written by nerfstudio (its frame)."""
+    path = Path(path)
+    document = _load_json(path, "camera_path.json")
+    name = path.name
+    width, height, fps = _size_and_fps(document, name)
+    if "camera_path" not in document:
+        raise HicoError(f"{name}: missing key 'camera_path' (expected nerfstudio's camera_path.json)")
     frames = document["camera_path"]
     if not isinstance(frames, list) or not frames:
         raise HicoError(f"{name}: camera_path: expected a non-empty list of frames")
-    c2ws, focals = [], []
-    for i, frame in enumerate(frames):
-        where = f"{name}: camera_path[{i}]"
-        if not isinstance(frame, dict) or "camera_to_world" not in frame or "fov" not in frame:
-            raise HicoError(f"{where}: expected an object with 'camera_to_world' and 'fov'")
-        c2w = _matrix(frame["camera_to_world"], f"{where}.camera_to_world", 4, 4)
-        rotation = c2w[:3, :3]
-        if (rotation @ rotation.T - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3 or torch.det(rotation) < 0:
-            raise HicoError(f"{where}.camera_to_world: its 3x3 part is not a rotation")
-        fov = _number(frame["fov"], f"{where}.fov")
-        if not 0 < fov < 180:
-            raise HicoError(f"{where}.fov: expected a vertical field of view in degrees in (0, 180), got {fov}")
-        c2ws.append(c2w)
-        focals.append(height / 2 / math.tan(math.radians(fov) / 2))
-    c2w = torch.stack(c2ws) @ _GL_TO_CV
-    if nerfstudio is not None:  # nerfstudio's frame -> the source frame
-        ns, scale = nerfstudio
-        inverse = torch.linalg.inv(torch.cat([ns, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)]))
-        c2w[:, :3, 3] = c2w[:, :3, 3] / scale
-        c2w = inverse @ c2w
-    viewmats = transform.viewmats_from_colmap(torch.linalg.inv(c2w)).float()
-    return _cameras(viewmats, torch.tensor(focals), int(width), int(height)), fps
+    c2w, fovs = _source_c2w(frames, "camera_to_world", f"{name}: camera_path", nerfstudio)
+    return _normalised_cameras(c2w, fovs, width, height, transform), fps
+
+
+def read_keyframes(path: str | Path, transform: SceneTransform,
+                   nerfstudio: tuple[Tensor, float] | None = None) -> tuple[Cameras, Tensor, float, bool]:
+    """The keyframes a render panel saved in ``path``: (cameras [K] in the normalised frame at the
+    file's size, seconds [K] from each to the next, fps, loop). A keyframe without its own transition
+    takes ``default_transition_sec`` (2 s when absent, nerfstudio's default)."""
+    path = Path(path)
+    document = _load_json(path, "camera_path.json")
+    name = path.name
+    width, height, fps = _size_and_fps(document, name)
+    keyframes = document.get("keyframes")
+    if not isinstance(keyframes, list) or not keyframes:
+        raise HicoError(f"{name}: keyframes: expected a non-empty list (a path saved by a render panel)")
+    default = _number(document.get("default_transition_sec", 2.0), f"{name}: default_transition_sec", True)
+    seconds = []
+    for i, entry in enumerate(keyframes):
+        own = isinstance(entry, dict) and entry.get("override_transition_enabled") and "override_transition_sec" in entry
+        seconds.append(_number(entry["override_transition_sec"], f"{name}: keyframes[{i}].override_transition_sec", True)
+                       if own else default)
+    c2w, fovs = _source_c2w(keyframes, "matrix", f"{name}: keyframes", nerfstudio)
+    loop = document.get("is_cycle", False)
+    if not isinstance(loop, bool):
+        raise HicoError(f"{name}: is_cycle: expected true or false, got {json.dumps(loop)[:40]}")
+    return _normalised_cameras(c2w, fovs, width, height, transform), torch.tensor(seconds), fps, loop
+
+
+def _gl_entries(cameras: Cameras, transform: SceneTransform) -> list[tuple[list[float], float, float]]:
+    """(camera->world flattened, OpenGL axes, source frame; vertical fov in degrees; aspect) of each camera."""
+    c2w = torch.linalg.inv(transform.viewmats_to_colmap(cameras.viewmats.double())) @ _GL_TO_CV
+    fovs = torch.rad2deg(2 * torch.atan(cameras.heights.double() / 2 / cameras.Ks[:, 1, 1].double()))
+    aspects = cameras.widths.double() / cameras.heights.double()
+    return [(m.flatten().tolist(), float(f), float(a)) for m, f, a in zip(c2w, fovs, aspects)]
+
+
+def keyframe_entries(keyframes: Cameras, seconds: Tensor, transform: SceneTransform) -> list[dict[str, Any]]:
+    """``keyframes`` [K] (normalised frame) with their transition ``seconds`` [K] as the render panel's
+    ``keyframes`` entries (nerfstudio's keys)."""
+    return [{"matrix": matrix, "fov": fov, "aspect": aspect, "override_transition_enabled": True,
+             "override_transition_sec": float(sec)}
+            for (matrix, fov, aspect), sec in zip(_gl_entries(keyframes, transform), seconds.tolist())]
 
 
 def _cameras(viewmats: Tensor, focals: Tensor, width: int, height: int) -> Cameras:
@@ -137,15 +195,12 @@ def _cameras(viewmats: Tensor, focals: Tensor, width: int, height: int) -> Camer
 def camera_path_document(cameras: Cameras, transform: SceneTransform, fps: float,
                          keyframes: list[dict[str, Any]] | None = None, **settings: Any) -> dict[str, Any]:
     """The camera_path.json of ``cameras`` [N] (normalised frame, one size, square pixels assumed: the
-    vertical field of view is written): poses in the source frame, OpenGL axes. ``keyframes`` and
-    ``settings`` (e.g. ``seconds``, ``is_cycle``) are stored as given for the viewer."""
-    width, height = int(cameras.widths[0]), int(cameras.heights[0])
-    c2w = torch.linalg.inv(transform.viewmats_to_colmap(cameras.viewmats.double())) @ _GL_TO_CV
-    fovs = torch.rad2deg(2 * torch.atan(height / 2 / cameras.Ks[:, 1, 1].double()))
-    frames = [{"camera_to_world": m.flatten().tolist(), "fov": float(f), "aspect": width / height}
-              for m, f in zip(c2w, fovs)]
-    return {"camera_type": "perspective", "render_width": width, "render_height": height, "fps": float(fps),
-            "seconds": len(frames) / float(fps), **settings, "keyframes": keyframes or [], "camera_path": frames}
+    vertical field of view is written): poses in the source frame, OpenGL axes. ``keyframes`` (e.g.
+    ``keyframe_entries``) and ``settings`` (e.g. ``is_cycle``) are stored as given for the viewer."""
+    frames = [{"camera_to_world": matrix, "fov": fov, "aspect": aspect} for matrix, fov, aspect in _gl_entries(cameras, transform)]
+    return {"camera_type": "perspective", "render_width": int(cameras.widths[0]), "render_height": int(cameras.heights[0]),
+            "fps": float(fps), "seconds": len(frames) / float(fps), **settings, "keyframes": keyframes or [],
+            "camera_path": frames}
 
 
 def write_camera_path(path: str | Path, cameras: Cameras, transform: SceneTransform, fps: float,

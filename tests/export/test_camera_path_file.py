@@ -12,7 +12,8 @@ import torch
 from hico_plugin.cameras import Cameras
 from hico_plugin.data.transform import SceneTransform, rotation_about_z, rotation_to_z
 from hico_plugin.errors import HicoError
-from hico_plugin.export.camera_path_file import nerfstudio_transform, read_camera_path, write_camera_path
+from hico_plugin.export.camera_path_file import (keyframe_entries, nerfstudio_transform, read_camera_path,
+                                                  read_keyframes, write_camera_path)
 
 TURNED = SceneTransform(torch.tensor([3.0, -2.0, 10.0], dtype=torch.float64), 0.25,
                         rotation_about_z(0.7) @ rotation_to_z(torch.tensor([0.3, -0.2, 0.93], dtype=torch.float64) /
@@ -112,3 +113,21 @@ def test_not_json_and_too_large_are_refused(tmp_path, monkeypatch):
     path.write_text(json.dumps(_document()))
     with pytest.raises(HicoError, match="too large"):
         read_camera_path(path, SceneTransform.identity())
+
+
+def test_keyframes_round_trip_with_their_transitions(tmp_path):
+    cameras = read_camera_path(_write(tmp_path, _document(camera_path=[
+        {"camera_to_world": [1, 0, 0, x, 0, 1, 0, 0, 0, 0, 1, 5, 0, 0, 0, 1], "fov": 40.0 + 10 * x} for x in range(3)])),
+        TURNED)[0]
+    path = write_camera_path(tmp_path / "keys.json", cameras, TURNED, fps=24,
+                             keyframes=keyframe_entries(cameras, torch.tensor([1.5, 0.5, 2.0]), TURNED), is_cycle=True)
+    keys, seconds, fps, loop = read_keyframes(path, TURNED)
+    assert torch.allclose(keys.viewmats, cameras.viewmats, atol=1e-5) and torch.allclose(keys.Ks, cameras.Ks, atol=1e-3)
+    assert seconds.tolist() == [1.5, 0.5, 2.0] and fps == 24 and loop is True
+    # nerfstudio's panel leaves most keyframes on the default transition
+    document = json.loads(path.read_text())
+    document["keyframes"][1]["override_transition_enabled"] = False
+    document["default_transition_sec"] = 3.0
+    assert read_keyframes(_write(tmp_path, document, "ns_keys.json"), TURNED)[1].tolist() == [1.5, 3.0, 2.0]
+    with pytest.raises(HicoError, match="keyframes: expected a non-empty list"):
+        read_keyframes(_write(tmp_path, _document(), "no_keys.json"), TURNED)
