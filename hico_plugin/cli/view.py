@@ -48,12 +48,12 @@ def _eval_stats(config_path: Path, output_dir: Any) -> dict[str, Any]:
     return {}
 
 
-def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any]]:
-    """(model, dataset, initial stats) of ``--load-config`` or of ``--demo``."""
+def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any], Path | None]:
+    """(model, dataset, initial stats, run folder) of ``--load-config`` or of ``--demo`` (no folder)."""
     if args.demo:
         from hico_plugin.viewer.demo import DemoDataset, DemoModel
 
-        return DemoModel(), DemoDataset(), {}
+        return DemoModel(), DemoDataset(), {}, None
     if args.load_config is None:
         raise HicoError("--load-config: expected a run's config.yml (or pass --demo)")
     if not args.load_config.is_file():
@@ -67,12 +67,12 @@ def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any]]:
             f"{args.load_config}: model {type(model).__name__} cannot be viewed "
             "(it needs render_for_display(camera, options) and viewer_anchors())"
         )
-    return model, dataset, _eval_stats(args.load_config, getattr(config, "output_dir", None))
+    return model, dataset, _eval_stats(args.load_config, getattr(config, "output_dir", None)), run.run_dir
 
 
 def main(args: ViewArgs) -> None:
-    model, dataset, stats = load_viewable_run(args)
-    state = RunViewerState(model, dataset, stats=stats)
+    model, dataset, stats, run_dir = load_viewable_run(args)
+    state = RunViewerState(model, dataset, stats=stats, run_dir=run_dir)
     viewer = args.viewer.setup(render_fn=model_render_fn(model), state=state)
     serve_until_signal(viewer.stop)
 

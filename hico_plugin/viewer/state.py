@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, ContextManager, Mapping, Protocol, runtime_checkable
 
 import cv2
@@ -32,6 +33,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.cameras import Camera, Cameras
+from hico_plugin.data.transform import SceneTransform
 from hico_plugin.visualization.options import RenderOptions
 from hico_plugin.visualization.visualize import visualize
 
@@ -66,7 +68,11 @@ class ViewerState(Protocol):
     """
 
     render_lock: ContextManager[Any]
-    """Held by the viewer for one render; the trainer holds it for each training step."""
+    """Held by the viewer for one render; the trainer holds it for each training step.
+
+    Optional members the camera-path panel reads when present: ``scene_transform`` (SceneTransform
+    from the dataset's source frame to the viewer's; paths are saved in the source frame, identity
+    without it) and ``camera_path_dir`` (where paths are saved and loaded; without it saving is off)."""
 
     @property
     def is_training(self) -> bool:
@@ -147,9 +153,12 @@ class RunViewerState:
     The dataset needs ``cameras``, ``train_indices`` and ``image(i) -> uint8 [H, W, 3]``.
     """
 
-    def __init__(self, model: ViewableModel, dataset: Any, stats: Mapping[str, Any] | None = None, max_history: int = 2000):
+    def __init__(self, model: ViewableModel, dataset: Any, stats: Mapping[str, Any] | None = None, max_history: int = 2000,
+                 run_dir: Path | None = None):
         self.model = model
         self.dataset = dataset
+        self.scene_transform = getattr(dataset, "transform", None) or SceneTransform.identity()
+        self.camera_path_dir = None if run_dir is None else Path(run_dir) / "camera_paths"
         self.render_lock: Any = threading.RLock()
         self._trainer: Any = None
         self._training = False

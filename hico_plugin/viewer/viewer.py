@@ -2,7 +2,7 @@
 
 gui.py builds the controls, scene.py draws the training frustums and the anchors, render_worker.py is
 the one background thread that touches the model (renders, panel refreshes), stats_panel.py shows the
-training stats and plot.
+training stats and plot, camera_path_panel.py makes camera paths for videos.
 """
 
 from __future__ import annotations
@@ -15,7 +15,9 @@ import numpy as np
 import viser
 
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.data.transform import SceneTransform
 from hico_plugin.errors import HicoError
+from hico_plugin.viewer.camera_path_panel import CameraPathPanel
 from hico_plugin.viewer.gui import build_gui
 from hico_plugin.viewer.render_worker import RenderWorker
 from hico_plugin.viewer.scene import ViewerScene
@@ -106,6 +108,11 @@ class Viewer:
         except BaseException:
             self.server.stop()  # do not leave a half-built server holding the port
             raise
+        first = self.scene.training.cameras[0] if len(self.scene.training.cameras) else None
+        self.camera_path = CameraPathPanel(
+            self.server, getattr(state, "scene_transform", None) or SceneTransform.identity(),
+            getattr(state, "camera_path_dir", None), self.scene.extent,
+            (first.width, first.height) if first is not None else (1280, 720))
         self.stats = StatsPanel(self.server.gui, self.gui.stats_folder, self.gui.stats_text)
         self.worker = RenderWorker(config, render_fn, state, self.gui, self.scene, self.stats)
         self._wire_gui()
@@ -186,7 +193,7 @@ def attach_viewer(trainer: Any, config: ViewerConfig) -> Viewer:
             f"vis: model {type(trainer.model).__name__} cannot be viewed "
             "(it needs render_for_display(camera, options) and viewer_anchors()); use --vis none"
         )
-    state = RunViewerState(trainer.model, trainer.dataset)
+    state = RunViewerState(trainer.model, trainer.dataset, run_dir=trainer.run_dir)
     state.attach(trainer)
     trainer.add_callback(state)
     return Viewer(config, model_render_fn(trainer.model), state)

@@ -7,88 +7,23 @@ HICO_VIEWER_SCREENSHOT=path to keep the screenshot.
 
 from __future__ import annotations
 
-import base64
-import json
 import os
-import re
-import shutil
-import subprocess
-import threading
 import time
-import urllib.request
 
 import cv2
 import numpy as np
 import pytest
-import websockets.sync.client
 
 from hico_plugin.viewer import RunViewerState, ViewerConfig, model_render_fn
 from hico_plugin.viewer.demo import DemoDataset, DemoModel
+from helpers_browser import CHROMIUM, DevToolsPage
 from helpers_viewer import wait_for
 
-CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser", "google-chrome") if shutil.which(name)), None)
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium not installed (apt-get install -y chromium)"),
 ]
 SKY_RGB = np.array([0.75, 0.85, 1.0]) * 255  # DemoModel's background
-
-
-class DevToolsPage:
-    """One Chromium page driven over the DevTools protocol (only what the test needs)."""
-
-    def __init__(self, profile_dir: str, width: int = 1200, height: int = 800):
-        self.process = subprocess.Popen(
-            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={profile_dir}", "--remote-debugging-port=0", f"--window-size={width},{height}",
-             "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )
-        endpoint = self._devtools_endpoint(timeout=60.0)
-        pages = json.load(urllib.request.urlopen(f"http://{endpoint}/json/list", timeout=10))
-        target = next(page for page in pages if page["type"] == "page")
-        self.socket = websockets.sync.client.connect(target["webSocketDebuggerUrl"], max_size=None)
-        self._next_id = 0
-
-    def _devtools_endpoint(self, timeout: float) -> str:
-        found: list[str] = []
-        ready = threading.Event()
-
-        def read_stderr() -> None:  # keep draining: Chromium logs a lot and would block on a full pipe
-            for line in self.process.stderr:
-                match = re.search(r"DevTools listening on ws://([^/\s]+)/", line)
-                if match and not found:
-                    found.append(match.group(1))
-                    ready.set()
-
-        threading.Thread(target=read_stderr, daemon=True).start()
-        if not ready.wait(timeout):
-            raise RuntimeError("Chromium did not start its DevTools endpoint")
-        return found[0]
-
-    def call(self, method: str, **params):
-        self._next_id += 1
-        self.socket.send(json.dumps({"id": self._next_id, "method": method, "params": params}))
-        while True:
-            reply = json.loads(self.socket.recv(timeout=60))
-            if reply.get("id") == self._next_id:
-                if "error" in reply:
-                    raise RuntimeError(f"{method}: {reply['error']}")
-                return reply["result"]
-
-    def screenshot(self) -> np.ndarray:
-        png = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-        return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
-
-    def close(self) -> None:
-        self.socket.close()
-        self.process.terminate()
-        try:
-            self.process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
 
 
 def _sky_fraction(picture: np.ndarray) -> float:
