@@ -1,6 +1,11 @@
 """Stopping a run cleanly: SIGINT (Ctrl-C), SIGTERM (kill, schedulers) and SIGHUP (a closed
 terminal) all ask the trainer to checkpoint after the current step and return.
 
+A signal the process was started with ignored stays ignored, as Python itself leaves an inherited
+ignored SIGINT alone: ``nohup`` ignores SIGHUP so a run survives its terminal closing, and a shell
+without job control starts a background job (``cmd &``) with SIGINT ignored so the terminal's Ctrl-C
+does not reach it. SIGTERM then stops such a run.
+
 A run stopped early ends with exit status ``EXIT_INTERRUPTED`` (130, the shell's code for a
 Ctrl-C'd command) so scripts can tell it from a finished run (0) and a failed one (2).
 """
@@ -33,7 +38,7 @@ def stop_on_signals(request_stop: Callable[[], bool], announce: bool) -> Iterato
             name = signal.Signals(signum).name
             print(f"\n{name}: saving a checkpoint after this step (Ctrl-C again to abort)", file=sys.stderr)
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
+    previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS if signal.getsignal(sig) is not signal.SIG_IGN}
     try:
         yield
     finally:

@@ -180,6 +180,11 @@ def test_stop_signals_save_a_checkpoint_and_exit_cleanly(tmp_path, signame):
         from hico_plugin.engine import TrainerCallback, TrainerConfig
         from helpers_toy_model import ToyDataConfig, ToyModelConfig, toy_config
 
+        # as a terminal starts a command (this test may run as a background job or under nohup, whose
+        # ignored SIGINT / SIGHUP the trainer keeps ignored)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
         class Interrupt(TrainerCallback):
             def on_step_end(self, step, metrics):
                 if step == 4:

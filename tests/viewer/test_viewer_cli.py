@@ -33,9 +33,13 @@ def test_demo_serves_and_stops_on_signal(stop_signal):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
+    # Started as from a terminal, where Ctrl-C reaches the command: the test itself may run as a
+    # background job, which a shell starts with SIGINT ignored, and hico-view keeps an ignored signal
+    # ignored (engine.stopping).
     process = subprocess.Popen(
         [sys.executable, "-X", "faulthandler", "-m", "hico_plugin.cli.view", "--demo", "--viewer.port", str(port), "--viewer.thumbnail-size", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     lines: list[str] = []
     served = threading.Event()
