@@ -82,6 +82,10 @@ def test_keyframes_edit_save_and_load(live, tmp_path):
     panel.fps.value = 10
     frames = panel.frames()
     assert len(frames) == 31  # 2 s + 1 s at 10 fps, both ends included
+    # Play flies the client's camera along the frames, ending at the last
+    panel.play(handle)
+    end = frames.centers[-1].double().numpy()
+    assert wait_for(lambda: np.allclose(handle.camera.position, end, atol=1e-4), 30.0)
     # saved in the run's camera_paths/, in the source frame: read back, they are the panel's frames
     panel.file_name.value = "fly"
     saved = panel.save()
