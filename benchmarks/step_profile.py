@@ -6,7 +6,8 @@ stage grows with pixels and with Gaussians.
 RUN_DIR is a finished ``hico-train`` run: its config.yml, and a checkpoint for every step of ``--at``
 but 0 (train it with ``--save-every 1000 --keep-checkpoints 0``). Step 0 is the run's config started
 afresh; a later step resumes a copy of that checkpoint in a scratch directory (the run is only read).
-Every (step, downscale) point runs in its own process, so its peak RSS is its own, and times
+Every (step, downscale) point runs in its own process, so its peak RSS is its own (the process's
+whole life: data loading, model set-up and the timed steps), and times
 ``--steps`` training steps after ``--warmup`` with ``bench.StageTimer``. ``--downscales`` lists the
 data's ``--downscale`` values (0: the run's own); each extra one is profiled at every step, which
 gives the growth with pixels at a fixed model.
@@ -82,8 +83,8 @@ def profile_point(run_dir: Path, step: int, downscale: int, steps: int, warmup: 
                 raise HicoError(f"{source}: no checkpoint of step {step} (train with --save-every)")
             (scratch / "checkpoints").mkdir()
             shutil.copy2(source, checkpoint_path(scratch / "checkpoints", step))
-        if step + warmup + steps > config.max_steps:
-            raise HicoError(f"step {step} + {warmup + steps} steps passes the run's max_steps {config.max_steps}")
+        # a point at the run's last step trains a little past it: the schedules stretch by that much
+        config = dataclasses.replace(config, max_steps=max(config.max_steps, step + warmup + steps))
         timer = StageTimer(warmup_steps=warmup)
         window = _Window(timer, step + warmup, step + warmup + steps)
         trainer = config.setup(callbacks=[window])
