@@ -4,15 +4,19 @@ Gaussians, keeps a level range, and leaves per-photo exposure out unless a refer
 
 from __future__ import annotations
 
+import json
 from dataclasses import fields, replace
 
+import numpy as np
 import pytest
 import torch
 
-import hico_plugin.presets  # noqa: F401  (the config classes a run's config.yml names)
+from hico_plugin.cli import export as export_cli
 from hico_plugin.engine import load_run
 from hico_plugin.errors import HicoError
+from hico_plugin.export import read_ply
 from hico_plugin.export.bake import bake, canonical_views
+from hico_plugin.export.gaussians import MIN_OPACITY
 from hico_plugin.metrics import psnr
 from hico_plugin.model.effects.exposure import AffineColour, ExposureEffect
 from hico_plugin.rasterizer import rasterize
@@ -123,3 +127,28 @@ def test_exposure_is_left_out_unless_a_reference_photo_is_chosen(tiny_run):
     torch.testing.assert_close(photo.means, neutral.means)
     with pytest.raises(HicoError, match="not a training photo"):
         bake(model, dataset, reference_view=int(dataset.test_indices[0]))
+
+
+def test_hico_export_gaussians_writes_the_whole_model_and_its_report(tiny_run, run, tmp_path, capsys):
+    config = str(tiny_run / "config.yml")
+    path = export_cli.main(export_cli.parse(["--load-config", config, "gaussians", "--output", str(tmp_path / "g.ply")]))
+    rows = read_ply(path)
+    baked = bake(run.model, run.dataset)
+    keep = baked.opacities >= MIN_OPACITY
+    expected = run.dataset.transform.points_to_colmap(baked.means[keep]).numpy()
+    np.testing.assert_allclose(np.stack([rows["x"], rows["y"], rows["z"]], -1), expected, rtol=1e-5, atol=1e-5)
+    report = json.loads((tmp_path / "g_report.json").read_text())
+    assert (tmp_path / "g_report.json").stat().st_mode & 0o777 == 0o644
+    assert report["file_bytes"] == path.stat().st_size and report["num_gaussians"] == len(rows)
+    assert report["num_baked"] == len(baked) and report["num_anchors"] == run.model.field.num_anchors
+    assert report["levels"] == [0, run.model.field.grid.num_levels - 1] and report["appearance"] == "neutral"
+    evaluated = json.loads((tiny_run / "eval.json").read_text())["results"]
+    assert report["test_views"] == 2 and report["psnr_model"] == pytest.approx(evaluated["psnr"], abs=1e-4)
+    assert report["psnr_baked_vs_model"] > 25.0 and abs(report["psnr_baked"] - report["psnr_model"]) < 1.0
+    printed = capsys.readouterr().out
+    assert f"wrote {len(rows)} of {len(baked)} baked from {report['num_anchors']} anchors (levels 0..2" in printed
+    assert "report: " in printed and "g_report.json" in printed
+    with pytest.raises(SystemExit) as exit_info:
+        export_cli.entrypoint(["--load-config", config, "gaussians", "--camera-index", "3", "--levels", "0", "1"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().startswith("error: --levels and --appearance-view choose")
