@@ -1,5 +1,6 @@
 """``hico-export --load-config RUN/config.yml EXPORTER [...]``: exports of a trained run.
 
+    hico-export --load-config outputs/city-block/hico-gs-lite/config.yml gaussians        # the whole model
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml gaussians --camera-index 3
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml anchors --output anchors.ply
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml mesh --depth-filter

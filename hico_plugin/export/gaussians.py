@@ -56,8 +56,8 @@ def gaussians_to_colmap(means: Tensor, quats: Tensor, scales: Tensor,
 
 
 def facing_normals(means: Tensor, quats: Tensor, scales: Tensor, eye: Tensor) -> Tensor:
-    """World normals [N, 3]: each Gaussian's shortest axis, turned towards the point ``eye`` [3]
-    (the rasterizer's normal rule, evaluated in world axes)."""
+    """World normals [N, 3]: each Gaussian's shortest axis, turned towards the point ``eye`` ([3], or
+    [N, 3] one per Gaussian) (the rasterizer's normal rule, evaluated in world axes)."""
     identity = torch.eye(4, dtype=means.dtype, device=means.device)[None]
     normals, _ = gaussian_normals(quats, scales, (means - eye)[None], identity)
     return normals[0]

@@ -93,15 +93,17 @@ class GaussianDecoder(nn.Module):
         """Decode visible anchors.
 
         features [V,d] (f_hat); positions [V,3]; offsets [V,K,3]; scalings [V,6] (linear,
-        = exp of the log-scaling parameter); levels [V]; camera_center [3]; anchor_ids [V] long
-        (the anchors' ids in the field, carried into the output).
+        = exp of the log-scaling parameter); levels [V]; camera_center [3], or [V,3] one viewpoint
+        per anchor; anchor_ids [V] long (the anchors' ids in the field, carried into the output).
         """
         parts = []
         size = max(1, self.config.chunk_size)
+        per_anchor = camera_center.dim() == 2
         for start in range(0, features.shape[0], size):  # chunks of anchors, not a per-anchor loop
             sl = slice(start, start + size)
-            parts.append(self._decode(features[sl], positions[sl], offsets[sl], scalings[sl],
-                                      levels[sl], camera_center, camera_index, anchor_ids[sl]))
+            parts.append(self._decode(features[sl], positions[sl], offsets[sl], scalings[sl], levels[sl],
+                                      camera_center[sl] if per_anchor else camera_center, camera_index,
+                                      anchor_ids[sl]))
         if not parts:
             parts.append(self._decode(features, positions, offsets, scalings, levels, camera_center,
                                       camera_index, anchor_ids))

@@ -173,26 +173,51 @@ class AnchorField(nn.Module):
         multiplies the camera distance in Eq. 1 (>1 picks coarser levels; the viewer's LOD control).
         Returns visible_ids [V] long, ascending.
         """
-        positions = self.anchors.detach()
+        return self.sees(camera, None, step, distance_scale).nonzero().squeeze(1)
+
+    @torch.no_grad()
+    def sees(self, camera: Camera, ids: Tensor | None = None, step: int | None = None,
+             distance_scale: float = 1.0) -> Tensor:
+        """Which of the anchors ``ids`` [V] long (None: all N) ``camera`` decodes, by ``select``'s
+        rule: [V] bool (or [N])."""
+        positions, levels = self.anchors.detach(), self.levels
+        extra_level, log_scaling = self.extra_level, self.log_scaling.detach()
+        if ids is not None:
+            positions, levels, extra_level, log_scaling = (
+                positions[ids], levels[ids], extra_level[ids], log_scaling[ids])
         center = camera.center.to(positions)
-        lod = lod_visible(positions, self.levels, self.extra_level, center, self.grid,
-                          self.active_levels(step), distance_scale)
-        ids = lod.nonzero().squeeze(1)
-        radii = 3.0 * torch.exp(self.log_scaling.detach()[ids, :3]).amax(1)  # 3-sigma anchor extent
-        in_view = frustum_visible(positions[ids], radii, camera, self.config.near, self.config.frustum_margin)
-        return ids[in_view]
+        seen = lod_visible(positions, levels, extra_level, center, self.grid, self.active_levels(step),
+                           distance_scale)
+        # frustum test only on the LOD survivors: the cheaper test first
+        candidates = seen.nonzero().squeeze(1)
+        radii = 3.0 * torch.exp(log_scaling[candidates, :3]).amax(1)  # 3-sigma anchor extent
+        seen[candidates] = frustum_visible(positions[candidates], radii, camera, self.config.near,
+                                           self.config.frustum_margin)
+        return seen
 
     def decode(self, camera: Camera, visible_ids: Tensor, context_enabled: bool = True) -> NeuralGaussians:
         """Neural Gaussians of the visible anchors; CLCA enhances their features unless disabled."""
+        features = self.enhanced_features(visible_ids, context_enabled)
+        return self.decode_features(features, visible_ids, camera.center.to(features), camera.index)
+
+    def enhanced_features(self, visible_ids: Tensor, context_enabled: bool = True) -> Tensor:
+        """Features [V,d] of the anchors ``visible_ids`` [V] long (ascending), CLCA-enhanced with
+        contexts read among those anchors only, unless disabled."""
         # index_select rather than [ids]: its backward is a plain index_add (much cheaper on CPU).
         features = self.anchor_features.index_select(0, visible_ids)
-        positions = self.anchors.index_select(0, visible_ids)
-        levels = self.levels.index_select(0, visible_ids)
         if context_enabled and self.context.reads_context:
             features = self.context(features, self.context.graph(self.levels, self.anchors, visible_ids, self.grid))
-        return self.decoder(features, positions, self.offsets.index_select(0, visible_ids),
-                            torch.exp(self.log_scaling.index_select(0, visible_ids)), levels,
-                            camera.center.to(positions), camera.index, visible_ids)
+        return features
+
+    def decode_features(self, features: Tensor, ids: Tensor, eyes: Tensor, appearance_index: int) -> NeuralGaussians:
+        """Neural Gaussians of the anchors ``ids`` [V] long from their (enhanced) features [V,d],
+        viewed from ``eyes``: [3] one camera centre, or [V,3] one viewpoint per anchor (an export's
+        canonical views). appearance_index: the training slot of the appearance embedding (-1: the
+        mean, neutral appearance)."""
+        positions = self.anchors.index_select(0, ids)
+        return self.decoder(features, positions, self.offsets.index_select(0, ids),
+                            torch.exp(self.log_scaling.index_select(0, ids)), self.levels.index_select(0, ids),
+                            eyes, appearance_index, ids)
 
     # ----- optimisation -----------------------------------------------------------------------------
 

@@ -153,7 +153,7 @@ def test_exported_gaussians_render_like_the_model(run_dir, tmp_path):
     """Read the PLY back the way a 3DGS viewer does (sigmoid, exp, SH DC, normalised quaternion),
     map it into the training frame and rasterize it: the picture is the model's own render."""
     path = export_cli.main(export_cli.parse(["--load-config", str(run_dir / "config.yml"), "gaussians",
-                                             "--output", str(tmp_path / "g.ply")]))
+                                             "--camera-index", "0", "--output", str(tmp_path / "g.ply")]))
     rows = read_ply(path)
     run = load_run(run_dir / "config.yml")
     transform, camera = run.dataset.transform, run.dataset.cameras[0]

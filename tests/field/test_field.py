@@ -150,6 +150,16 @@ def test_frustum_culls_anchors_behind_and_beside_the_camera():
     assert field.select(camera, None).tolist() == [0, 3]
 
 
+
+def test_sees_applies_selects_rule_to_any_subset_of_anchors():
+    field = make_field()
+    camera = ring_cameras()[8]  # the close view: several levels, some anchors culled
+    selected = field.select(camera, None)
+    assert 0 < len(selected) < field.num_anchors
+    subset = torch.arange(0, field.num_anchors, 3)
+    expected = torch.isin(subset, selected)
+    assert torch.equal(field.sees(camera, subset), expected)
+
 def test_progressive_levels_follow_the_schedule():
     ends6 = progressive_interval_ends(OctreeGrid((0, 0, 0), 1, 1, 6, 2, 1, 3), 10_000, 1.5)
     assert ends6 == pytest.approx([6000, 10000])
@@ -198,6 +208,25 @@ def test_decoder_outputs_and_opacity_mask():
         if name != "clca":  # zero last layer: only the last layer itself gets a gradient at init
             assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in params), name
 
+
+
+def test_one_viewpoint_per_anchor_decodes_each_anchor_as_its_own_camera_would():
+    field = make_field(decoder=DecoderConfig(add_distance=True, chunk_size=64))
+    torch.manual_seed(0)
+    with torch.no_grad():
+        field.anchor_features.normal_()
+    cameras = ring_cameras()
+    ids = torch.arange(field.num_anchors)
+    features = field.enhanced_features(ids)
+    which = ids % len(cameras)
+    mixed = field.decode_features(features, ids, cameras.centers[which], -1)
+    for c in range(len(cameras)):
+        rows = ids[which == c]
+        own = field.decode_features(features[rows], rows, cameras.centers[c], -1)
+        mine = which[mixed.anchor_ids] == c
+        assert torch.equal(mixed.anchor_ids[mine], own.anchor_ids)
+        torch.testing.assert_close(mixed.colors[mine], own.colors)
+        torch.testing.assert_close(mixed.opacities[mine], own.opacities)
 
 def test_default_optimizers_cover_every_group():
     field = make_field(decoder=DecoderConfig(appearance_dim=4))

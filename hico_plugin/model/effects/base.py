@@ -80,6 +80,12 @@ class Effect:
         """The rendered image [H, W, 3] with the effect applied (``out.rgb`` holds the image so far)."""
         return out.rgb
 
+    def bake_colors(self, module: nn.Module | None, colors: Tensor, camera: "Camera") -> Tensor:
+        """Per-Gaussian colours [N, 3] with the effect folded in for ``camera``'s photo, where that
+        can be done (an export baking a reference photo's appearance). The default leaves them
+        unchanged: an effect behind the Gaussians, like the sky, is no part of them."""
+        return colors
+
     def cost(self, module: nn.Module | None) -> dict[str, float]:
         """What the effect adds to the model: its trained parameters (its time shows in the run's
         step times and in hico-bench's effect cells)."""

@@ -50,6 +50,11 @@ class ExposureEffect(Effect):
     def apply(self, module: "AffineColour", out: RenderOutputs, camera: Camera) -> Tensor:
         return module(out.rgb, camera.index)  # the photo's exposure (training views only)
 
+    def bake_colors(self, module: "AffineColour", colors: Tensor, camera: Camera) -> Tensor:
+        # An affine map passes through alpha blending (sum w_i (A c_i + b) = A sum w_i c_i + alpha b):
+        # exact wherever the Gaussians cover the pixel.
+        return module(colors, camera.index)
+
 
 class AffineColour(nn.Module):
     """rgb' = rgb @ A[slot]^T + b[slot] for training slot ``slot`` (identity for slot < 0)."""
@@ -66,7 +71,7 @@ class AffineColour(nn.Module):
         self.bias = nn.Parameter(torch.zeros(count, 3))  # [C,3]
 
     def forward(self, rgb: Tensor, slot: int) -> Tensor:
-        """rgb [H,W,3] -> [H,W,3]."""
+        """rgb [..., 3] (an image [H,W,3], or colours [N,3]) -> the same shape."""
         if slot < 0 or slot >= self.matrix.shape[0]:
             return rgb
         return rgb @ self.matrix[slot].T + self.bias[slot]

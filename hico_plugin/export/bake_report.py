@@ -1,0 +1,63 @@
+"""What a whole-model export weighs and keeps: file size, Gaussian count, and the test views' PSNR of
+its Gaussians next to the model's own, written as JSON next to the PLY."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.engine.data import load_view
+from hico_plugin.export.bake import BakedGaussians
+from hico_plugin.metrics import psnr
+from hico_plugin.rasterizer import rasterize
+
+
+@torch.no_grad()
+def psnr_on_test_views(model, dataset, baked: BakedGaussians) -> dict[str, float | None]:
+    """Mean PSNR (dB) over the test views of ``model`` (a HiCoModel): ``psnr_model``, its own render;
+    ``psnr_baked``, ``baked`` rasterized (the functional ``rasterize`` with the model's backend and
+    cut-offs) over the model's constant background, as a splat viewer shows the file;
+    ``psnr_baked_vs_model``, the baked render against the model's, what baking loses apart from the
+    model's own error. None without test views.
+
+    The rasterizer culls opacity <= 1/255, what the PLY writer drops, so the baked set renders as the
+    file does (up to its float32 round trip).
+    """
+    sums = {"psnr_model": 0.0, "psnr_baked": 0.0, "psnr_baked_vs_model": 0.0}
+    views = [int(i) for i in dataset.test_indices]
+    config = model.renderer.config
+    for index in views:
+        camera = dataset.cameras[index].to(baked.means.device)
+        image = load_view(dataset, index)[0].to(baked.means)
+        own = model.render(camera, ("rgb",))[0].rgb.clamp(0, 1)
+        mine = rasterize(baked.means, baked.quats, baked.scales, baked.opacities, baked.colors, camera.viewmat,
+                         camera.K, camera.width, camera.height, background=model.background,
+                         backend=model.renderer.backend, near=config.near, far=config.far,
+                         tile_size=config.tile_size).rgb.clamp(0, 1)
+        sums["psnr_model"] += float(psnr(own, image))
+        sums["psnr_baked"] += float(psnr(mine, image))
+        sums["psnr_baked_vs_model"] += float(psnr(mine, own))
+    return {key: total / len(views) if views else None for key, total in sums.items()}
+
+
+def write_bake_report(ply: Path, num_written: int, baked: BakedGaussians, model, dataset,
+                      settings: dict[str, Any]) -> tuple[dict[str, Any], Path]:
+    """The report of the PLY ``ply`` holding ``num_written`` of the ``baked`` Gaussians, with the
+    export's ``settings`` (anchors, levels, appearance), written to ``<ply stem>_report.json``."""
+    report = {
+        "file": ply.name,
+        "file_bytes": ply.stat().st_size,
+        "num_gaussians": num_written,
+        "num_baked": len(baked),
+        **settings,
+        "test_views": len(dataset.test_indices),
+        **psnr_on_test_views(model, dataset, baked),
+    }
+    path = ply.with_name(f"{ply.stem}_report.json")
+    write_text_atomic(path, json.dumps(report, indent=2) + "\n")
+    path.chmod(0o644)  # readable by whoever may read the PLY next to it (written 0644 too)
+    return report, path
