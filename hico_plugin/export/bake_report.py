@@ -5,15 +5,33 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, Callable
 
+import numpy as np
 import torch
 
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.engine.data import load_view
 from hico_plugin.export.bake import BakedGaussians
+from hico_plugin.export.gaussians import gaussians_from_colmap, rows_to_gaussians
 from hico_plugin.metrics import psnr
 from hico_plugin.rasterizer import rasterize
+
+
+@torch.no_grad()
+def file_figures(path: Path, read: Callable[[Path], np.ndarray], model, dataset) -> dict[str, Any]:
+    """Size and test-view PSNR of an exported file, from the file itself: ``read`` (``read_ply``,
+    ``read_spz``) gives its rows back, which are mapped to the training frame and rasterized as
+    ``psnr_on_test_views`` rasterizes the baked set (so a format's quantisation shows)."""
+    gaussians = rows_to_gaussians(read(path))
+    means, quats, scales = gaussians_from_colmap(gaussians["means"], gaussians["quats"], gaussians["scales"],
+                                                 dataset.transform)
+    device = model.background.device
+    decoded = SimpleNamespace(means=means.to(device), quats=quats.to(device), scales=scales.to(device),
+                              opacities=gaussians["opacities"].to(device), colors=gaussians["colors"].to(device))
+    return {"file": path.name, "file_bytes": path.stat().st_size, "num_gaussians": len(means),
+            "psnr": psnr_on_test_views(model, dataset, decoded)["psnr_baked"]}
 
 
 @torch.no_grad()

@@ -47,12 +47,37 @@ def gaussians_to_colmap(means: Tensor, quats: Tensor, scales: Tensor,
     """Undo the scene normalisation (rotation, translation, isotropic scale): means [N, 3], quats
     [N, 4] (w, x, y, z, any norm; a zero quaternion stays zero) and scales [N, 3] (linear) in the
     normalised frame -> the same in COLMAP's frame."""
-    back = rotmat_to_quat(transform.rotation.T.to(quats.device, torch.float64))  # normalised -> COLMAP axes
-    w1, x1, y1, z1 = back.to(quats.dtype).unbind(-1)
-    w2, x2, y2, z2 = quats.unbind(-1)
-    rotated = torch.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                           w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
+    rotated = _turned(transform.rotation.T, quats)  # normalised -> COLMAP axes
     return transform.points_to_colmap(means), rotated, scales / transform.scale
+
+
+def gaussians_from_colmap(means: Tensor, quats: Tensor, scales: Tensor,
+                          transform: SceneTransform) -> tuple[Tensor, Tensor, Tensor]:
+    """``gaussians_to_colmap``'s inverse: means [N, 3], quats [N, 4] (w, x, y, z) and scales [N, 3]
+    in COLMAP's frame -> the normalised frame."""
+    rotated = _turned(transform.rotation, quats)  # COLMAP -> normalised axes
+    return transform.points_from_colmap(means), rotated, scales * transform.scale
+
+
+def _turned(rotation: Tensor, quats: Tensor) -> Tensor:
+    """Quaternions [N, 4] (w, x, y, z) of orientations turned by the rotation matrix [3, 3] (its
+    quaternion times each)."""
+    w1, x1, y1, z1 = rotmat_to_quat(rotation.to(quats.device, torch.float64)).to(quats.dtype).unbind(-1)
+    w2, x2, y2, z2 = quats.unbind(-1)
+    return torch.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
+
+
+def rows_to_gaussians(rows: np.ndarray) -> dict[str, Tensor]:
+    """Inria-layout rows (a PLY or SPZ read back) -> means [N, 3], quats [N, 4] (w, x, y, z), scales
+    [N, 3] linear, opacities [N], colors [N, 3] RGB (float32): what ``inria_vertices`` was given."""
+    def column(*names: str) -> Tensor:
+        return torch.from_numpy(np.stack([rows[n] for n in names], -1).astype(np.float32))
+
+    return {"means": column("x", "y", "z"), "quats": column("rot_0", "rot_1", "rot_2", "rot_3"),
+            "scales": torch.exp(column("scale_0", "scale_1", "scale_2")),
+            "opacities": torch.sigmoid(column("opacity")[:, 0]),
+            "colors": column("f_dc_0", "f_dc_1", "f_dc_2") * SH_C0 + 0.5}
 
 
 def facing_normals(means: Tensor, quats: Tensor, scales: Tensor, eye: Tensor) -> Tensor:

@@ -145,8 +145,14 @@ def test_hico_export_gaussians_writes_the_whole_model_and_its_report(tiny_run, r
     evaluated = json.loads((tiny_run / "eval.json").read_text())["results"]
     assert report["test_views"] == 2 and report["psnr_model"] == pytest.approx(evaluated["psnr"], abs=1e-4)
     assert report["psnr_baked_vs_model"] > 25.0 and abs(report["psnr_baked"] - report["psnr_model"]) < 1.0
+    # the SPZ beside it holds the same Gaussians in a third or less; its PSNR is read from the file
+    spz = report["spz"]
+    assert spz["file"] == "g.spz" and spz["file_bytes"] == (tmp_path / "g.spz").stat().st_size
+    assert spz["num_gaussians"] == len(rows) and spz["file_bytes"] < 0.35 * report["file_bytes"]
+    assert abs(spz["psnr"] - report["psnr_baked"]) < 0.5
     printed = capsys.readouterr().out
     assert f"wrote {len(rows)} of {len(baked)} baked from {report['num_anchors']} anchors (levels 0..2" in printed
+    assert "spz: " in printed and "x smaller" in printed
     assert "report: " in printed and "g_report.json" in printed
     with pytest.raises(SystemExit) as exit_info:
         export_cli.entrypoint(["--load-config", config, "gaussians", "--camera-index", "3", "--levels", "0", "1"])
