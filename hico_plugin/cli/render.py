@@ -18,6 +18,8 @@ from typing import Literal, Sequence
 
 import torch
 import tyro
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from hico_plugin.cameras import Camera, Cameras
 import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
@@ -125,14 +127,19 @@ def main(args: RenderArgs) -> Path:
     videos = {name: Mp4Writer(output_dir / f"{name}.mp4", fps, cameras[0].width, cameras[0].height)
               for name in names} if len({(c.width, c.height) for c in cameras}) == 1 else {}
     start = time.perf_counter()
+    bar = Progress(TextColumn("[bold]render"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                   console=Console(stderr=True), transient=True)
     try:
-        for i, camera in enumerate(cameras):
-            images = run.model.render_for_display(camera, request)
-            for name in names:
-                picture = visualize(images, options[name])
-                write_png(output_dir / name / f"{i:05d}.png", picture)
-                if name in videos:
-                    videos[name].write(picture)
+        with bar:
+            task = bar.add_task("render", total=len(cameras))
+            for i, camera in enumerate(cameras):
+                images = run.model.render_for_display(camera, request)
+                for name in names:
+                    picture = visualize(images, options[name])
+                    write_png(output_dir / name / f"{i:05d}.png", picture)
+                    if name in videos:
+                        videos[name].write(picture)
+                bar.advance(task)
     except BaseException:
         for video in videos.values():
             video.discard()
