@@ -41,10 +41,10 @@ _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a
 _MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.sky.SkyConfig"}
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
 # field gets the value that reproduces the run (its scene frame was not rotated, or rotated by the
-# cameras' mean up; its anchors were not kept nested), not today's default.
+# cameras' mean up; its anchors were not kept nested, or its kept ancestors were drawn), not today's default.
 _ADDED_FIELDS = {
     "hico_plugin.data.parser.DataParserConfig": {"orient": False, "orient_method": "up"},
-    "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False},
+    "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False, "draw_ancestors": True},
 }
 
 

@@ -107,9 +107,9 @@ def bake(model, dataset, level_range: tuple[int, int] | None = None, reference_v
         slot = photo.index
     every = torch.arange(field.num_anchors, device=device)
     features = field.enhanced_features(every)
-    kept = every
+    kept = every[field.drawn]  # ancestors kept for CLCA's context only are not drawn
     if level_range is not None:
-        kept = every[(field.levels >= level_range[0]) & (field.levels <= level_range[1])]
+        kept = kept[(field.levels[kept] >= level_range[0]) & (field.levels[kept] <= level_range[1])]
         if len(kept) == 0:
             raise HicoError(f"--levels: no anchor has a level in {level_range[0]}..{level_range[1]} "
                             f"(the model's levels: 0..{field.grid.num_levels - 1})")

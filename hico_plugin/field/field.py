@@ -35,8 +35,9 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.field.context import ContextConfig
 from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
-from hico_plugin.field.densify import (
-    DensifyConfig, close_ancestors, extra_level_increment, grow_anchors, offset_gradients, prune_decision)
+from hico_plugin.field.context_graph import cell_keys
+from hico_plugin.field.densify import (DensifyConfig, GrownAnchors, close_ancestors, extra_level_increment,
+                                       grow_anchors, offset_gradients, prune_decision, rows_in)
 from hico_plugin.field.lod import active_level_count, frustum_visible, lod_visible, progressive_interval_ends
 from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree, knn_log_scale
 
@@ -46,7 +47,7 @@ ANCHOR_GROUPS = {"anchor": "anchors", "offset": "offsets", "anchor_feat": "ancho
 # Densification statistics; each has a ``<name>_synced`` twin holding its value at the last sync.
 STAT_BUFFERS = ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom", "stat_views")
 # Per-anchor buffers, resized together with the anchor parameters.
-ANCHOR_BUFFERS = ("levels", "extra_level", "opacity_accum", "anchor_denom", "offset_grad_accum",
+ANCHOR_BUFFERS = ("levels", "drawn", "extra_level", "opacity_accum", "anchor_denom", "offset_grad_accum",
                   "offset_denom", "opacity_accum_synced", "anchor_denom_synced",
                   "offset_grad_accum_synced", "offset_denom_synced")
 
@@ -104,7 +105,8 @@ class AnchorField(nn.Module):
 
     Parameters: anchors [N,3] (positions p), offsets [N,K,3] (delta), anchor_features [N,d] (f),
     log_scaling [N,6] (log s; s[:3] scales the offsets, s[3:] bounds the children's scales).
-    Buffers: levels [N] long, extra_level [N] (the paper's "learnable" eps; as in the base code it
+    Buffers: levels [N] long, drawn [N] bool (False: an ancestor kept only for CLCA's context, see
+    ``DensifyConfig.draw_ancestors``), extra_level [N] (the paper's "learnable" eps; as in the base code it
     is adjusted by the densification rule, not by gradients), the statistics
     (opacity_accum [N], anchor_denom [N], offset_grad_accum [N,K], offset_denom [N,K]), the training
     camera centres [C,3] (weed-out of new anchors) and the schedule counters. The octree grid
@@ -123,6 +125,7 @@ class AnchorField(nn.Module):
         self.anchor_features = nn.Parameter(torch.zeros(num, d))
         self.log_scaling = nn.Parameter(knn_log_scale(self.anchors.detach())[:, None].repeat(1, 6))
         self.register_buffer("levels", levels.long().clone())
+        self.register_buffer("drawn", torch.ones(num, dtype=torch.bool))
         self.register_buffer("extra_level", torch.zeros(num))
         self.register_buffer("opacity_accum", torch.zeros(num))
         self.register_buffer("anchor_denom", torch.zeros(num))
@@ -196,8 +199,13 @@ class AnchorField(nn.Module):
         return seen
 
     def decode(self, camera: Camera, visible_ids: Tensor, context_enabled: bool = True) -> NeuralGaussians:
-        """Neural Gaussians of the visible anchors; CLCA enhances their features unless disabled."""
+        """Neural Gaussians of the visible anchors that are drawn; CLCA enhances their features
+        unless disabled, with contexts read among all of ``visible_ids`` (ancestors kept for context
+        included)."""
         features = self.enhanced_features(visible_ids, context_enabled)
+        drawn = self.drawn.index_select(0, visible_ids)
+        if not bool(drawn.all()):
+            features, visible_ids = features[drawn], visible_ids[drawn]
         return self.decode_features(features, visible_ids, camera.center.to(features), camera.index)
 
     def enhanced_features(self, visible_ids: Tensor, context_enabled: bool = True) -> Tensor:
@@ -293,16 +301,27 @@ class AnchorField(nn.Module):
         if allow_finer:
             self.extra_level += extra_level_increment(grads, eligible, self.levels, self.grid, cfg)
         threshold = self.config.octree.visible_threshold
+        hides = self.keeps_ancestors and not cfg.draw_ancestors
         grown = grow_anchors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
                              self.offsets.detach(), self.log_scaling.detach(), grads, self.grid, cfg,
-                             self.train_camera_centers, max(threshold, 0.0), allow_finer)
+                             self.train_camera_centers, max(threshold, 0.0), allow_finer,
+                             blocks=self.drawn if hides else None)
+        if hides:
+            grown = self._draw_hidden_ancestors(grown)
         self.offset_grad_accum[eligible] = 0
         self.offset_denom[eligible] = 0
         prune, judged = prune_decision(self.opacity_accum, self.anchor_denom, cfg.min_opacity, check_views)
+        new_drawn = torch.ones(grown.positions.shape[0], dtype=torch.bool, device=self.drawn.device)
         if self.keeps_ancestors:
+            # an ancestor no kept anchor needs goes; close_ancestors revives the needed ones
+            before = ~prune & self.drawn if hides else ~prune
             keep, grown = close_ancestors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
-                                          ~prune, grown, self.grid)
+                                          before, grown, self.grid)
             prune = ~keep
+            added = grown.positions.shape[0] - len(new_drawn)  # the new parents, appended to grown
+            new_drawn = torch.cat([new_drawn, new_drawn.new_full((added,), not hides)])
+            if hides:
+                self.drawn &= before  # the revived anchors: context only
         self.opacity_accum[judged] = 0
         self.anchor_denom[judged] = 0
         self.stat_views.zero_()
@@ -316,7 +335,7 @@ class AnchorField(nn.Module):
             self._mark_synced()
             return {}
         kept_rows = (~prune).nonzero().squeeze(1)
-        self._resize(kept_rows, grown)
+        self._resize(kept_rows, grown, new_drawn)
         self._mark_synced()
         if prune.any():
             self.log_scaling[:, 3:].clamp_(max=cfg.max_log_scale)
@@ -327,8 +346,21 @@ class AnchorField(nn.Module):
         for name in STAT_BUFFERS:
             getattr(self, f"{name}_synced").copy_(getattr(self, name))
 
-    def _resize(self, kept_rows: Tensor, grown) -> None:
-        """Swap every per-anchor parameter / buffer for ``cat([old[kept_rows], new rows])``."""
+    def _draw_hidden_ancestors(self, grown: GrownAnchors) -> GrownAnchors:
+        """Growth asks for an anchor where an ancestor kept for context sits: draw that ancestor (it
+        keeps its training) instead of adding a second anchor to its cell; returns the rest of ``grown``."""
+        hidden = (~self.drawn).nonzero().squeeze(1)
+        if len(hidden) == 0 or grown.positions.shape[0] == 0:
+            return grown
+        hidden_keys = cell_keys(self.anchors.detach()[hidden], self.levels[hidden], self.grid)
+        grown_keys = cell_keys(grown.positions, grown.levels, self.grid)
+        self.drawn[hidden[rows_in(hidden_keys, grown_keys)]] = True
+        fresh = ~rows_in(grown_keys, hidden_keys)
+        return GrownAnchors(grown.positions[fresh], grown.levels[fresh], grown.features[fresh])
+
+    def _resize(self, kept_rows: Tensor, grown, new_drawn: Tensor) -> None:
+        """Swap every per-anchor parameter / buffer for ``cat([old[kept_rows], new rows])``;
+        new_drawn [G] bool: which new rows are drawn."""
         num_new, k = grown.positions.shape[0], self.offsets.shape[1]
         voxel = self.grid.voxel_size / float(self.grid.fork) ** grown.levels.to(torch.float32)
         new_rows = {
@@ -343,7 +375,8 @@ class AnchorField(nn.Module):
                                              requires_grad=old.requires_grad))
         for name in ANCHOR_BUFFERS:
             old = getattr(self, name)
-            rows = grown.levels.to(old) if name == "levels" else old.new_zeros(num_new, *old.shape[1:])
+            rows = {"levels": grown.levels.to(old), "drawn": new_drawn.to(old)}.get(
+                name, old.new_zeros(num_new, *old.shape[1:]))
             setattr(self, name, torch.cat([old[kept_rows], rows]))
 
     # ----- introspection ----------------------------------------------------------------------------
@@ -364,7 +397,7 @@ class AnchorField(nn.Module):
 
     def stats(self) -> dict[str, float]:
         """Counters for logs: total anchors and anchors per level."""
-        out = {"num_anchors": float(self.num_anchors)}
+        out = {"num_anchors": float(self.num_anchors), "anchors/context_only": float((~self.drawn).sum())}
         for level, count in enumerate(self.level_counts().tolist()):
             out[f"anchors/level_{level}"] = float(count)
         return out
@@ -380,6 +413,9 @@ class AnchorField(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys,
                               unexpected_keys, error_msgs):
+        # Checkpoints from before ancestors could be kept for context only draw every anchor.
+        if prefix + "levels" in state_dict and prefix + "drawn" not in state_dict:
+            state_dict[prefix + "drawn"] = torch.ones(len(state_dict[prefix + "levels"]), dtype=torch.bool)
         # The checkpoint may hold a different number of anchors (densification) or training cameras:
         # take its shapes before copying, so a freshly built field loads any checkpoint of the scene.
         for name, tensor in list(self._parameters.items()) + list(self._buffers.items()):

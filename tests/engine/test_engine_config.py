@@ -94,11 +94,12 @@ def test_a_run_from_before_orientation_and_kept_ancestors_loads_as_it_was_traine
     path.write_text("!dataclass:hico_plugin.data.parser.DataParserConfig\norient: true\n")
     assert load_config(path).orient_method == "up"  # it was rotated by the cameras' mean up
     path.write_text("!dataclass:hico_plugin.field.densify.DensifyConfig\ninterval: 100\n")
-    assert load_config(path).keep_ancestors is False
+    assert load_config(path).keep_ancestors is False and load_config(path).draw_ancestors is True
     # a config written today keeps today's values
     save_config(all_presets()["hico-gs-lite"][1], path)
     loaded = load_config(path)
     assert loaded.data.orient is True and loaded.model.field.densify.keep_ancestors is True
+    assert loaded.model.field.densify.draw_ancestors is False
     assert loaded.data.orient_method == "manhattan"
     # a whole run's file from before: its data source (a subclass of the parser config) without orient
     text = path.read_text()

@@ -3,6 +3,7 @@
 import dataclasses
 import itertools
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -159,3 +160,60 @@ def test_the_tree_is_kept_where_the_trilinear_lookup_reads_it_or_on_request(pres
     config = dataclasses.replace(config, densify=dataclasses.replace(config.densify, **densify_changes))
     positions, levels = anchors((0, 1, 1, 1), (1, 2, 2, 2))
     assert AnchorField(config, positions, levels, GRID, torch.zeros(1, 3)).keeps_ancestors is keeps
+
+
+def _clca_field(*rows, **densify_changes):
+    config = PRESETS["hico-gs-clca"][1].model.field
+    config = dataclasses.replace(config, densify=dataclasses.replace(config.densify, **densify_changes))
+    positions, levels = anchors(*rows)
+    field = AnchorField(config, positions, levels, GRID, torch.zeros(1, 3))
+    field.densify_start, field.densify_interval, field.densify_stop = 0, 1, 100
+    return field
+
+
+def _densify_with_opacity(field, step, opacity_per_view):
+    """One adjustment at ``step`` after 10 views in which every anchor was seen, with these mean
+    summed opacities (below min_opacity = pruned); no offset is eligible to grow."""
+    field.stat_views.fill_(10)
+    field.last_adjust_step.fill_(step - 1)
+    field.anchor_denom.fill_(10.0)
+    field.opacity_accum.copy_(10.0 * torch.tensor(opacity_per_view))
+    field.offset_denom.zero_()
+    return field.densify(step)
+
+
+def test_a_kept_ancestor_lends_its_context_but_is_not_drawn_and_goes_when_no_anchor_needs_it():
+    # A (level 0) -> B (level 1) -> C (level 2); B's opacity is too low, but C needs it as a parent
+    field = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3))
+    assert field.keeps_ancestors and not field.config.densify.draw_ancestors
+    _densify_with_opacity(field, 1, [1.0, 0.0, 1.0])
+    assert field.num_anchors == 3 and field.drawn.tolist() == [True, False, True]
+    every = torch.arange(3)
+    assert field.parent_found()[2]  # C reads B's context
+    eye = SimpleNamespace(center=torch.tensor([0.0, 0.0, -50.0]), index=-1)
+    decoded = field.decode(eye, every)
+    assert set(decoded.anchor_ids.tolist()) <= {0, 2} and 0 in decoded.anchor_ids.tolist()
+    # C's context (read from B) still reaches what is drawn: C's decoded feature differs without B
+    with_b = field.enhanced_features(every)[2]
+    without_b = field.enhanced_features(torch.tensor([0, 2]))[1]
+    assert not torch.allclose(with_b, without_b)
+    # C goes too: nothing needs B any more, so it goes with it (it is never judged by its own opacity)
+    _densify_with_opacity(field, 2, [1.0, 0.0, 0.0])
+    assert field.num_anchors == 1 and field.drawn.tolist() == [True]
+
+
+def test_growth_into_a_kept_ancestors_cell_draws_it_and_adds_no_second_anchor():
+    field = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3))
+    _densify_with_opacity(field, 1, [1.0, 0.0, 1.0])
+    b_feature = field.anchor_features.detach()[1].clone()
+    asked, asked_levels = anchors((1, 1, 1, 1), (1, 0, 0, 0))  # B's cell and a free one
+    rest = field._draw_hidden_ancestors(GrownAnchors(asked, asked_levels, torch.ones(2, field.anchor_features.shape[1])))
+    assert field.drawn.tolist() == [True, True, True]
+    assert rest.levels.tolist() == [1] and torch.equal(rest.positions, asked[1:])
+    assert torch.equal(field.anchor_features.detach()[1], b_feature)  # B keeps its training
+
+
+def test_drawn_ancestors_are_the_previous_behaviour():
+    field = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3), draw_ancestors=True)
+    _densify_with_opacity(field, 1, [1.0, 0.0, 1.0])
+    assert field.num_anchors == 3 and field.drawn.all()
