@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -169,19 +170,20 @@ class LPIPS(nn.Module):
             state[f"heads.{j}.weight"] = torch.from_numpy(arrays[f"head{j}.weight"])
         self.load_state_dict({**self.state_dict(), **state})
 
-    def _features(self, images: Tensor) -> list[Tensor]:
-        taps, conv_index = [], 0
+    def _features(self, images: Tensor) -> Iterator[Tensor]:
+        """The taps, one at a time: a caller that drops each before asking for the next never holds
+        two (VGG's first tap of a 540x960 pair is 265 MB in float32)."""
+        conv_index = 0
         kernel, stride = _POOL[self.net]
         x = images
         for layer in _ARCHITECTURES[self.net]:
             if layer == "T":
-                taps.append(x)
+                yield x
             elif layer == "M":
                 x = F.max_pool2d(x, kernel, stride)
             else:
                 x = F.relu(self.convs[conv_index](x))
                 conv_index += 1
-        return taps
 
     def forward(self, pred: Tensor, target: Tensor, to_signed: bool = True) -> Tensor:
         if pred.shape != target.shape or pred.dim() not in (3, 4) or pred.shape[-1] != 3:
@@ -194,10 +196,28 @@ class LPIPS(nn.Module):
         images = (images - self.shift) / self.scale  # ScalingLayer
         distance = 0.0
         for feature, head in zip(self._features(images), self.heads):
-            unit = feature / (feature.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
-            first, second = unit.chunk(2)
-            distance = distance + head((first - second).square()).mean(dim=(1, 2, 3))
+            distance = distance + tap_distance(feature, head)
+            del feature  # before the generator computes the next tap
         return distance if batched else distance[0]
+
+
+# Elements of one tap processed at a time by tap_distance (16 MB of float32 per temporary).
+TAP_CHUNK_ELEMENTS = 4 * 2**20
+
+
+def tap_distance(feature: Tensor, head: nn.Module) -> Tensor:
+    """One tap's LPIPS term: feature [2B, C, H, W] (the B predictions, then the B targets) ->
+    [B]: the head's weighted squared difference of the channel-normalised features, averaged over
+    space. Every step is per pixel, so it runs over row bands of at most TAP_CHUNK_ELEMENTS
+    elements and the temporaries stay small at any image size."""
+    rows = max(1, TAP_CHUNK_ELEMENTS // max(1, feature.shape[0] * feature.shape[1] * feature.shape[3]))
+    total = 0.0
+    for start in range(0, feature.shape[2], rows):
+        band = feature[:, :, start:start + rows]
+        unit = band / (band.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
+        first, second = unit.chunk(2)
+        total = total + head((first - second).square()).sum(dim=(1, 2, 3))
+    return total / (feature.shape[2] * feature.shape[3])
 
 
 _LOADED: dict[str, LPIPS | None] = {}

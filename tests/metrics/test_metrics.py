@@ -164,6 +164,27 @@ def test_lpips_vgg_and_input_scaling_options():
     assert scores["lpips_alex"] == pytest.approx(0.138, abs=2e-3)
 
 
+def test_lpips_in_row_bands_equals_the_whole_tap_formula(monkeypatch):
+    """The banded tap distance (bounded memory at any size) is the LPIPS formula on whole taps."""
+    torch.manual_seed(0)
+    net = lpips_net.LPIPS("vgg")  # random weights: the arithmetic, not the calibration, is tested
+    for head in net.heads:
+        torch.nn.init.uniform_(head.weight, 0.0, 1.0)
+    pred, target = torch.rand(2, 37, 45, 3).unbind(0)
+
+    def whole(feature, head):  # the formula as LPIPS writes it
+        unit = feature / (feature.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
+        first, second = unit.chunk(2)
+        return head((first - second).square()).mean(dim=(1, 2, 3))
+
+    monkeypatch.setattr(lpips_net, "tap_distance", whole)
+    expected = net(pred, target)
+    monkeypatch.undo()
+    monkeypatch.setattr(lpips_net, "TAP_CHUNK_ELEMENTS", 1000)  # bands of a few rows
+    banded = net(pred, target)
+    assert banded.item() > 0 and banded.item() == pytest.approx(expected.item(), rel=1e-5)
+
+
 def _fake_sdist(tmp_path, payload: bytes) -> Path:
     import io
     import tarfile
