@@ -373,10 +373,10 @@ class AnchorField(nn.Module):
             old = getattr(self, attr)
             setattr(self, attr, nn.Parameter(torch.cat([old.detach()[kept_rows], rows]),
                                              requires_grad=old.requires_grad))
+        given = {"levels": grown.levels, "drawn": new_drawn}  # every other buffer starts at zero
         for name in ANCHOR_BUFFERS:
             old = getattr(self, name)
-            rows = {"levels": grown.levels.to(old), "drawn": new_drawn.to(old)}.get(
-                name, old.new_zeros(num_new, *old.shape[1:]))
+            rows = given[name].to(old) if name in given else old.new_zeros(num_new, *old.shape[1:])
             setattr(self, name, torch.cat([old[kept_rows], rows]))
 
     # ----- introspection ----------------------------------------------------------------------------
