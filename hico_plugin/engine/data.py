@@ -7,6 +7,8 @@ step, it needs no state to resume and is identical on every rank (each rank then
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -53,11 +55,14 @@ def as_float_image(image, where: str) -> Tensor:
     return tensor.to(torch.float32)
 
 
-def load_view(dataset: TrainDataset, index: int) -> tuple[Tensor, dict[str, Tensor]]:
-    """Image [H, W, 3] float in [0, 1] and the ground truth the dataset has for view ``index``."""
+def load_view(dataset: TrainDataset, index: int,
+              gt_keys: Iterable[str] | None = None) -> tuple[Tensor, dict[str, Tensor]]:
+    """Image [H, W, 3] float in [0, 1] and the ground truth the dataset has for view ``index``
+    (of the keys ``gt_keys``; None: every kind)."""
     image = as_float_image(dataset.image(index), f"dataset image {index}")
     gt = {}
-    for key, method in _OPTIONAL_GT.items():
+    wanted = _OPTIONAL_GT if gt_keys is None else {k: v for k, v in _OPTIONAL_GT.items() if k in set(gt_keys)}
+    for key, method in wanted.items():
         getter = getattr(dataset, method, None)
         value = getter(index) if getter is not None else None
         if value is not None:
@@ -65,10 +70,12 @@ def load_view(dataset: TrainDataset, index: int) -> tuple[Tensor, dict[str, Tens
     return image, gt
 
 
-def make_batch(dataset: TrainDataset, indices: list[int], device: torch.device) -> TrainBatch:
-    """Load the views ``indices`` (dataset indices) into a TrainBatch on ``device``."""
+def make_batch(dataset: TrainDataset, indices: list[int], device: torch.device,
+               gt_keys: Iterable[str] | None = None) -> TrainBatch:
+    """Load the views ``indices`` (dataset indices) into a TrainBatch on ``device``, with the ground
+    truth of ``gt_keys`` (None: every kind the dataset has)."""
     cameras = [dataset.cameras[i].to(device) for i in indices]
-    views = [load_view(dataset, i) for i in indices]
+    views = [load_view(dataset, i, gt_keys) for i in indices]
     sizes = {tuple(image.shape) for image, _ in views}
     if len(sizes) > 1:
         raise HicoError(
@@ -81,9 +88,9 @@ def make_batch(dataset: TrainDataset, indices: list[int], device: torch.device) 
 
 
 def rank_batch(dataset: TrainDataset, train_indices: list[int], batch_size: int, seed: int, step: int,
-               rank: int, world_size: int, device: torch.device) -> TrainBatch:
+               rank: int, world_size: int, device: torch.device, gt_keys: Iterable[str] | None = None) -> TrainBatch:
     """This rank's ``batch_size`` views of ``step`` (``train_indices``: the dataset indices of the
-    training split), loaded on ``device``."""
+    training split), loaded on ``device`` with the ground truth of ``gt_keys``."""
     positions = batch_positions(len(train_indices), batch_size * world_size, seed, step)
     mine = rank_slice(positions, rank, world_size).tolist()
-    return make_batch(dataset, [train_indices[p] for p in mine], device)
+    return make_batch(dataset, [train_indices[p] for p in mine], device, gt_keys)

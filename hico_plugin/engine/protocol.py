@@ -103,6 +103,10 @@ class TrainableModel(Protocol):
     densification accumulators and the current parameter shapes: ``load_state_dict`` on a freshly
     built model must resize its parameters to the checkpoint's shapes. The engine rebuilds the
     optimizers from ``param_groups()`` after loading, so replaced ``nn.Parameter`` objects are fine.
+
+    Optional attribute: ``train_gt``, the keys of ``TrainBatch.gt`` that ``train_step`` reads (e.g.
+    ``("mask",)``); the engine then decodes only those for training batches. Without it, training
+    batches carry every kind of ground truth the dataset has.
     """
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:

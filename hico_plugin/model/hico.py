@@ -117,6 +117,10 @@ class HiCoModelConfig(InstantiateConfig):
 class HiCoModel(nn.Module):
     """The HiCo-GS model; implements the engine's ``TrainableModel`` protocol."""
 
+    train_gt = ("mask",)
+    """Ground truth a training step reads: the photo's mask. Depth and normal maps (generated scenes)
+    score evaluations only, so training batches do not decode or hold them."""
+
     def __init__(self, config: HiCoModelConfig, dataset: Any, total_steps: int | None = None):
         super().__init__()
         self.config = config

@@ -12,9 +12,9 @@ import torch
 
 from hico_plugin.engine import TrainerCallback, load_config, load_run
 from hico_plugin.engine.checkpoints import latest_checkpoint, list_checkpoints, load_checkpoint
-from hico_plugin.engine.data import batch_positions, rank_slice
+from hico_plugin.engine.data import batch_positions, make_batch, rank_slice
 from hico_plugin.errors import HicoError
-from helpers_toy_model import ToyModelConfig, toy_config
+from helpers_toy_model import ToyDataset, ToyModelConfig, toy_config
 
 TESTS_DIR = Path(__file__).resolve().parents[1]  # tests/, where the helpers live
 
@@ -38,6 +38,12 @@ def test_batches_cover_each_epoch_without_replacement():
     # The global batch split over 2 ranks is the 1-rank batch.
     whole = batch_positions(10, 4, 3, 2)
     assert torch.equal(torch.cat([rank_slice(whole, r, 2) for r in range(2)]), whole)
+
+
+def test_training_batches_carry_only_the_ground_truth_the_model_reads():
+    dataset = ToyDataset(num_views=4, size=8, seed=0, with_depth=True)
+    assert set(make_batch(dataset, [0, 1], torch.device("cpu")).gt) == {"depth"}  # default: everything
+    assert make_batch(dataset, [0, 1], torch.device("cpu"), gt_keys=("mask",)).gt == {}
 
 
 def test_train_writes_run_directory_and_learns(tmp_path):
