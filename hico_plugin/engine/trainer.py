@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dataclass_field
 from pathlib import Path
 from typing import Any, Iterable, Literal
 
@@ -44,6 +44,7 @@ from hico_plugin.engine.disk_space import check_free_space, run_bytes_needed
 from hico_plugin.engine.evaluation import evaluate, periodic_eval_due, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import TrainableModel, TrainDataset
+from hico_plugin.engine.resolution import ResolutionSchedule, downscale_batch
 from hico_plugin.engine.run_dir import (
     RunLock,
     start_checkpoint,
@@ -107,6 +108,8 @@ class TrainerConfig(InstantiateConfig):
     """Stop the run after this many non-finite losses in a row (each such step is skipped)."""
     distributed_timeout_minutes: float = 30.0
     """Under torchrun: how long a worker waits for the others at a collective before failing."""
+    resolution: ResolutionSchedule = dataclass_field(default_factory=ResolutionSchedule)
+    """Coarse-to-fine training images (evaluation is always at full resolution)."""
 
     def validate(self) -> None:
         """A HicoError naming the first field out of range (run before anything is read)."""
@@ -116,6 +119,7 @@ class TrainerConfig(InstantiateConfig):
         for name in ("batch_size", "log_every", "max_nonfinite_steps"):
             if getattr(self, name) < 1:
                 raise HicoError(f"config.{name}: expected >= 1, got {getattr(self, name)}")
+        self.resolution.validate()
         for part in (self.data, self.model):  # their own fields, when they check them
             validate_part = getattr(part, "validate", None)
             if callable(validate_part):
@@ -357,7 +361,8 @@ class Trainer:
             with self.lock:
                 try:
                     batch = rank_batch(self.dataset, self.train_indices, config.batch_size, config.seed, step,
-                                       self.rank, self.world_size, self.device)
+                                       self.rank, self.world_size, self.device, getattr(self.model, "train_gt", None))
+                    batch = downscale_batch(batch, config.resolution.scale(step, config.max_steps))
                     metrics, finite = optimizer_step(self.model, self.optimizers, batch, step, self.device,
                                                      self.world_size)
                 except HicoError as err:  # a bad training image: keep what was trained so far

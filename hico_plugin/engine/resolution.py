@@ -1,0 +1,72 @@
+"""Coarse-to-fine training images: a step's views downscaled by a factor that rises to 1.
+
+A resolution schedule (DashGaussian, Chen et al., CVPR 2025) trains on low-resolution images while the
+model can only represent coarse detail, and on full-resolution images once it can: the early steps
+cost fewer pixels (rasterizing, the losses and their backward pass all scale with pixels) and the
+model's result is judged at full resolution as before. Evaluation, the viewer and exports never see
+the schedule; it only changes the batches the engine hands to ``train_step``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from hico_plugin.engine.protocol import TrainBatch
+from hico_plugin.errors import HicoError
+
+# Scales are rounded to this step so a run uses a handful of image sizes, not one per step.
+_SCALE_QUANTUM = 1 / 16
+
+
+@dataclass
+class ResolutionSchedule:
+    """Training image resolution as a function of the step (evaluation is always at full resolution)."""
+
+    start_scale: float = 1.0
+    """Image scale (side length, fraction of full) of the first step; 1.0 turns the schedule off."""
+    full_at: float = 0.5
+    """Fraction of max_steps by which the scale has risen (linearly in pixels per view) to 1."""
+
+    def validate(self) -> None:
+        if not 0.0 < self.start_scale <= 1.0:
+            raise HicoError(f"config.resolution.start_scale: expected in (0, 1], got {self.start_scale}")
+        if not 0.0 < self.full_at <= 1.0:
+            raise HicoError(f"config.resolution.full_at: expected in (0, 1], got {self.full_at}")
+
+    def scale(self, step: int, max_steps: int) -> float:
+        """Side-length scale of the images of ``step`` (0-based) in a run of ``max_steps``."""
+        if self.start_scale >= 1.0:
+            return 1.0
+        progress = min(1.0, step / max(1.0, self.full_at * max_steps))
+        # Linear in pixels: each stretch of steps adds the same number of pixels per view.
+        pixels = self.start_scale**2 + (1.0 - self.start_scale**2) * progress
+        # Rounded down, so full resolution starts exactly at full_at (1e-9: 0.25 stays 4 quanta).
+        return min(1.0, math.floor(pixels**0.5 / _SCALE_QUANTUM + 1e-9) * _SCALE_QUANTUM)
+
+
+def downscale_batch(batch: TrainBatch, scale: float) -> TrainBatch:
+    """``batch`` at ``scale`` times its resolution: images area-averaged (no aliasing), masks and
+    ground-truth depth / normals sampled at the nearest pixel (averaging would invent depths across
+    edges), cameras' intrinsics rescaled to the new size (``Camera.scaled``)."""
+    if scale >= 1.0:
+        return batch
+    cameras = [camera.scaled(scale) for camera in batch.cameras]
+    size = (cameras[0].height, cameras[0].width)
+    images = _resize(batch.images, size, "area")
+    gt = {key: _resize(value, size, "nearest-exact") for key, value in batch.gt.items()}
+    return dataclasses.replace(batch, cameras=cameras, images=images, gt=gt)
+
+
+def _resize(images: Tensor, size: tuple[int, int], mode: str) -> Tensor:
+    """[B, H, W, C] (any dtype) -> [B, h, w, C] of the same dtype."""
+    channels_first = images.permute(0, 3, 1, 2)
+    resized = F.interpolate(channels_first.float(), size=size, mode=mode)
+    if images.dtype == torch.bool:
+        resized = resized > 0.5
+    return resized.to(images.dtype).permute(0, 2, 3, 1).contiguous()

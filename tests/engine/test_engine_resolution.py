@@ -1,0 +1,100 @@
+"""Coarse-to-fine training images: the schedule, the downscaled batch and the trainer's use of it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from hico_plugin.cameras import Camera
+from hico_plugin.engine.protocol import TrainBatch
+from hico_plugin.engine.resolution import ResolutionSchedule, downscale_batch
+from hico_plugin.errors import HicoError
+
+from helpers_toy_model import ToyModel, ToyModelConfig, toy_config
+
+
+def _camera(width: int = 64, height: int = 48) -> Camera:
+    K = torch.tensor([[50.0, 0.0, width / 2], [0.0, 55.0, height / 2], [0.0, 0.0, 1.0]])
+    viewmat = torch.eye(4)
+    viewmat[:3, 3] = torch.tensor([0.1, -0.2, 2.0])
+    return Camera(viewmat, K, width, height, index=3)
+
+
+def _project(camera: Camera, point: torch.Tensor) -> torch.Tensor:
+    cam = camera.viewmat[:3, :3] @ point + camera.viewmat[:3, 3]
+    uvw = camera.K @ cam
+    return uvw[:2] / uvw[2]
+
+
+def test_schedule_rises_to_full_resolution_by_full_at_and_off_is_one():
+    schedule = ResolutionSchedule(start_scale=0.25, full_at=0.5)
+    scales = [schedule.scale(step, 1000) for step in range(0, 1001, 10)]
+    assert scales[0] == 0.25
+    assert all(b >= a for a, b in zip(scales, scales[1:]))
+    assert schedule.scale(499, 1000) < 1.0 and schedule.scale(500, 1000) == 1.0 and scales[-1] == 1.0
+    # Linear in pixels: half way to full_at holds about half the pixels the schedule adds.
+    half = schedule.scale(250, 1000)
+    assert abs(half**2 - (0.25**2 + 1.0) / 2) < 2 * (1 / 16)  # within the rounding to 1/16 of a side
+    assert len(set(scales)) <= 16  # quantised: a handful of image sizes per run
+    assert all(ResolutionSchedule().scale(step, 1000) == 1.0 for step in (0, 500, 999))
+
+
+@pytest.mark.parametrize("field, value", [("start_scale", 0.0), ("start_scale", 1.5), ("full_at", 0.0)])
+def test_schedule_out_of_range_names_the_field(field, value):
+    with pytest.raises(HicoError, match=f"config.resolution.{field}"):
+        ResolutionSchedule(**{field: value}).validate()
+    with pytest.raises(HicoError, match=f"config.resolution.{field}"):
+        toy_config(Path("/nonexistent"), resolution=ResolutionSchedule(**{field: value})).validate()
+
+
+def test_downscaled_batch_averages_pixels_and_keeps_projection():
+    generator = torch.Generator().manual_seed(0)
+    images = torch.rand(2, 48, 64, 3, generator=generator)
+    depth = torch.rand(2, 48, 64, 1, generator=generator) + 1.0
+    mask = torch.rand(2, 48, 64, 1, generator=generator) > 0.3
+    cameras = [_camera(), _camera()]
+    batch = TrainBatch(cameras=cameras, images=images, indices=torch.tensor([3, 5]),
+                       gt={"depth": depth, "mask": mask})
+    half = downscale_batch(batch, 0.5)
+    assert half.images.shape == (2, 24, 32, 3) and half.images.dtype == images.dtype
+    # Area averaging: each output pixel is the mean of its 2x2 block (no aliasing).
+    blocks = images.reshape(2, 24, 2, 32, 2, 3).mean(dim=(2, 4))
+    torch.testing.assert_close(half.images, blocks)
+    # Ground truth is sampled, not averaged: every value is one of the full-resolution values.
+    assert half.gt["mask"].dtype == torch.bool and half.gt["mask"].shape == (2, 24, 32, 1)
+    assert torch.isin(half.gt["depth"], depth).all()
+    # The rescaled camera sees a point where the full one does, in its own pixels (x 0.5).
+    point = torch.tensor([0.3, 0.2, 1.0])
+    torch.testing.assert_close(_project(half.cameras[0], point), 0.5 * _project(cameras[0], point))
+    assert (half.cameras[0].width, half.cameras[0].height, half.cameras[0].index) == (32, 24, 3)
+    assert torch.equal(half.indices, batch.indices)
+    assert downscale_batch(batch, 1.0) is batch
+
+
+class _SizeRecorder(ToyModel):
+    def train_step(self, batch, step):
+        self.sizes.append((step, tuple(batch.images.shape[1:3]), batch.cameras[0].width))
+        return super().train_step(batch, step)
+
+
+class _RecorderConfig(ToyModelConfig):
+    def setup(self, dataset, **kwargs):
+        model = super().setup(dataset, **kwargs)
+        model.__class__ = _SizeRecorder
+        model.sizes = []
+        return model
+
+
+def test_trainer_trains_coarse_first_and_evaluates_at_full_resolution(tmp_path):
+    config = toy_config(tmp_path, model=_RecorderConfig(), max_steps=12, save_every=0,
+                        resolution=ResolutionSchedule(start_scale=0.5, full_at=0.5))
+    trainer = config.setup()
+    result = trainer.train()
+    sizes = trainer.model.sizes
+    full = trainer.dataset.cameras[0].width
+    assert sizes[0][2] == full // 2 and sizes[0][1][1] == full // 2  # images and cameras agree
+    assert all(width == full for step, _, width in sizes if step >= 6)
+    assert [width for _, _, width in sizes] == sorted(width for _, _, width in sizes)
+    assert result.eval_results is not None and result.eval_results["psnr"] > 0
