@@ -168,7 +168,11 @@ class LPIPS(nn.Module):
             state[f"convs.{i}.bias"] = torch.from_numpy(arrays[f"conv{i}.bias"])
         for j in range(len(self.heads)):
             state[f"heads.{j}.weight"] = torch.from_numpy(arrays[f"head{j}.weight"])
-        self.load_state_dict({**self.state_dict(), **state})
+        state["shift"] = torch.tensor(_SHIFT).view(1, 3, 1, 1)
+        state["scale"] = torch.tensor(_SCALE).view(1, 3, 1, 1)
+        # assign: the parameters become the arrays' memory (no second copy of VGG's 59 MB).
+        self.load_state_dict(state, assign=True)
+        self.requires_grad_(False)
 
     def _features(self, images: Tensor) -> Iterator[Tensor]:
         """The taps, one at a time: a caller that drops each before asking for the next never holds
@@ -182,7 +186,7 @@ class LPIPS(nn.Module):
             elif layer == "M":
                 x = F.max_pool2d(x, kernel, stride)
             else:
-                x = F.relu(self.convs[conv_index](x))
+                x = F.relu_(self.convs[conv_index](x))  # in place: one activation of the pair alive, not two
                 conv_index += 1
 
     def forward(self, pred: Tensor, target: Tensor, to_signed: bool = True) -> Tensor:
@@ -230,7 +234,8 @@ def load_lpips(net: str = "alex", device: torch.device | str = "cpu") -> LPIPS |
     if net not in _LOADED:
         try:
             arrays = dict(np.load(ensure_weights(net), allow_pickle=False))
-            model = LPIPS(net)
+            with torch.device("meta"):  # no random weights to overwrite: the arrays become the parameters
+                model = LPIPS(net)
             model.load_arrays(arrays)
             _LOADED[net] = model
         except (OSError, KeyError, ValueError, RuntimeError, pickle.UnpicklingError, subprocess.SubprocessError) as err:
