@@ -1,6 +1,6 @@
-// Fused CPU compositor: front-to-back alpha blending of binned Gaussians, one pixel at a time, with
-// per-pixel early termination, and its analytic backward (3DGS order: back to front, recovering each
-// transmittance by division). Same contract and cut-offs as composite.py's vectorised torch version:
+// Fused CPU compositor: front-to-back alpha blending of binned Gaussians, row by row over the pixels
+// of each row's bounding box, with per-pixel early termination, and its analytic backward (3DGS order:
+// back to front, recovering each transmittance by division). Same contract and cut-offs as composite.py's vectorised torch version:
 //
 //   means2d [G,2], conics [G,3] (a, b, c of [[a,b],[b,c]]), opacities [G], features [G,D],
 //   gaussian_ids [I] int64 sorted by (tile, depth), tile_offsets [T+1] int64
@@ -37,6 +37,10 @@ struct Splats {
         num_tiles(tile_offsets.size(0) - 1), dim(features_.size(1)) {}
 };
 
+struct Span {
+  int64_t x0, x1, y0, y1;  // local pixel columns [x0, x1) and rows [y0, y1) of a tile
+};
+
 template <typename scalar_t>
 struct TileRows {
   // The first rows of one tile gathered into contiguous arrays: x, y, a, b, c, opacity, features, and
@@ -65,16 +69,41 @@ struct TileRows {
     sigma = scalar_t(0.5) * (ca[r] * dx * dx + cc[r] * dy * dy) + cb[r] * dx * dy;
     return sigma >= 0 && sigma <= cut[r];  // (NaN fails both)
   }
+
+  // The local pixels [x0, x1) x [y0, y1) of a tile that row r can reach: the bounding box of its
+  // ellipse sigma <= cut (half-sizes sqrt(2 cut C^-1_xx), sqrt(2 cut C^-1_yy) for the conic C),
+  // widened by a pixel so rounding never drops a pixel the exact test above keeps. A conic that is
+  // not positive definite or not finite gets the whole tile (the test above decides every pixel).
+  // (ox, oy): the tile's first pixel column and row in the image.
+  Span span(int64_t r, int64_t ox, int64_t oy, int64_t tile_size) const {
+    if (!(cut[r] >= 0)) return Span{0, 0, 0, 0};  // sigma >= 0 > cut: reaches no pixel
+    const scalar_t det = ca[r] * cc[r] - cb[r] * cb[r];
+    const scalar_t hx = std::sqrt(2 * cut[r] * cc[r] / det), hy = std::sqrt(2 * cut[r] * ca[r] / det);
+    const bool bounded = det > 0 && ca[r] > 0 && std::isfinite(hx) && std::isfinite(hy) &&
+                         std::isfinite(mx[r]) && std::isfinite(my[r]);
+    if (!bounded) return Span{0, tile_size, 0, tile_size};
+    // Pixel i of the tile has its centre at o + i + 0.5: |o + i + 0.5 - m| <= h.
+    auto range = [tile_size](scalar_t m, scalar_t h, int64_t o, int64_t& lo, int64_t& hi) {
+      const scalar_t first = std::ceil(m - h - scalar_t(0.5) - scalar_t(o)) - 1;
+      const scalar_t last = std::floor(m + h - scalar_t(0.5) - scalar_t(o)) + 1;
+      const scalar_t size = scalar_t(tile_size);
+      lo = int64_t(std::min(std::max(first, scalar_t(0)), size));
+      hi = int64_t(std::min(std::max(last + 1, scalar_t(0)), size));
+    };
+    Span out;
+    range(mx[r], hx, ox, out.x0, out.x1);
+    range(my[r], hy, oy, out.y0, out.y1);
+    return out;
+  }
 };
 
 struct Grid {
   int64_t tiles_x, tiles_per_cam, tile_size;
-  // Pixel-centre coordinates of local pixel p of tile t.
-  template <typename scalar_t>
-  void pixel(int64_t t, int64_t p, scalar_t& px, scalar_t& py) const {
+  // Image column and row of the first pixel of tile t.
+  void origin(int64_t t, int64_t& ox, int64_t& oy) const {
     const int64_t in_cam = t % tiles_per_cam;
-    px = scalar_t((in_cam % tiles_x) * tile_size + p % tile_size) + scalar_t(0.5);
-    py = scalar_t((in_cam / tiles_x) * tile_size + p / tile_size) + scalar_t(0.5);
+    ox = (in_cam % tiles_x) * tile_size;
+    oy = (in_cam / tiles_x) * tile_size;
   }
 };
 
@@ -88,11 +117,16 @@ void for_each_tile(int64_t num_tiles, Fn fn) {
   });
 }
 
+// Both passes go row by row (Gaussian-major) and visit only the pixels of each row's bounding box,
+// keeping every pixel's running state in small per-tile arrays: a typical row covers a few dozen of
+// a tile's 256 pixels, so most (pixel, row) pairs are never looked at. Each pixel still sees its rows
+// in the same order with the same arithmetic as a pixel-by-pixel loop, and each row's gradient sums
+// its pixels in raster order, so the results do not depend on the loop order.
 template <typename scalar_t>
 void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, scalar_t a_max,
                   scalar_t t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t,
                   at::Tensor& n_drawn) {
-  const int64_t pixels = grid.tile_size * grid.tile_size, dim = s.dim;
+  const int64_t ts = grid.tile_size, pixels = ts * ts, dim = s.dim;
   scalar_t* out_p = out.data_ptr<scalar_t>();
   scalar_t* acc_p = acc.data_ptr<scalar_t>();
   scalar_t* t_p = final_t.data_ptr<scalar_t>();
@@ -101,31 +135,42 @@ void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, sc
   for_each_tile(s.num_tiles, [&](int64_t t) {
     const int64_t count = s.offsets[t + 1] - s.offsets[t];
     const TileRows<scalar_t> rows(s, t, count, a_min);
-    std::vector<scalar_t> color(dim);
-    for (int64_t p = 0; p < pixels; ++p) {
-      scalar_t px, py, dx, dy, sigma;
-      grid.pixel(t, p, px, py);
-      std::fill(color.begin(), color.end(), scalar_t(0));
-      scalar_t trans = 1, weight_sum = 0;
-      int32_t drawn = 0;
-      for (int64_t r = 0; r < count; ++r) {
-        if (!rows.reaches(r, px, py, dx, dy, sigma)) continue;
-        const scalar_t alpha = std::min(a_max, rows.op[r] * std::exp(-sigma));
-        if (!(alpha >= a_min)) continue;
-        const scalar_t next = trans * (1 - alpha);
-        if (next <= t_min) break;
-        const scalar_t w = alpha * trans;
-        const scalar_t* fr = &rows.feat[r * dim];
-        for (int64_t d = 0; d < dim; ++d) color[d] += w * fr[d];
-        weight_sum += w;
-        trans = next;
-        drawn = int32_t(r + 1);
+    scalar_t* color = out_p + t * pixels * dim;
+    scalar_t* weight_sum = acc_p + t * pixels;
+    scalar_t* trans = t_p + t * pixels;
+    int32_t* drawn = n_p + t * pixels;
+    std::fill(color, color + pixels * dim, scalar_t(0));
+    std::fill(weight_sum, weight_sum + pixels, scalar_t(0));
+    std::fill(trans, trans + pixels, scalar_t(1));
+    std::fill(drawn, drawn + pixels, 0);
+    std::vector<uint8_t> done(pixels, 0);  // the pixel met a row that would leave T <= t_min
+    int64_t active = pixels, ox, oy;
+    grid.origin(t, ox, oy);
+    for (int64_t r = 0; r < count && active > 0; ++r) {
+      const Span box = rows.span(r, ox, oy, ts);
+      const scalar_t* fr = &rows.feat[r * dim];
+      for (int64_t ly = box.y0; ly < box.y1; ++ly) {
+        const scalar_t py = scalar_t(oy + ly) + scalar_t(0.5);
+        for (int64_t lx = box.x0; lx < box.x1; ++lx) {
+          const int64_t p = ly * ts + lx;
+          if (done[p]) continue;
+          scalar_t dx, dy, sigma;
+          if (!rows.reaches(r, scalar_t(ox + lx) + scalar_t(0.5), py, dx, dy, sigma)) continue;
+          const scalar_t alpha = std::min(a_max, rows.op[r] * std::exp(-sigma));
+          if (!(alpha >= a_min)) continue;
+          const scalar_t next = trans[p] * (1 - alpha);
+          if (next <= t_min) {
+            done[p] = 1;
+            --active;
+            continue;
+          }
+          const scalar_t w = alpha * trans[p];
+          for (int64_t d = 0; d < dim; ++d) color[p * dim + d] += w * fr[d];
+          weight_sum[p] += w;
+          trans[p] = next;
+          drawn[p] = int32_t(r + 1);
+        }
       }
-      const int64_t pix = t * pixels + p;
-      for (int64_t d = 0; d < dim; ++d) out_p[pix * dim + d] = color[d];
-      acc_p[pix] = weight_sum;
-      t_p[pix] = trans;
-      n_p[pix] = drawn;
     }
   });
 }
@@ -138,7 +183,7 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
   // its rows' gradients (summed over its pixels) into its own slice of a per-intersection buffer;
   // one serial pass then adds them up by Gaussian in intersection order, so the result does not
   // depend on which thread took which tile (bitwise reproducible backward, any thread count).
-  const int64_t pixels = grid.tile_size * grid.tile_size, dim = s.dim, stride = 6 + dim;
+  const int64_t ts = grid.tile_size, pixels = ts * ts, dim = s.dim, stride = 6 + dim;
   std::vector<scalar_t> row_grads(s.offsets[s.num_tiles] * stride, scalar_t(0));
   std::vector<int32_t> deepest_of(s.num_tiles, 0);
   const scalar_t* t_p = final_t.data_ptr<scalar_t>();
@@ -148,50 +193,56 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
   scalar_t* g_all = grads.data_ptr<scalar_t>();
 
   for_each_tile(s.num_tiles, [&](int64_t t) {
-    int32_t deepest = 0;
-    for (int64_t p = 0; p < pixels; ++p) deepest = std::max(deepest, n_p[t * pixels + p]);
+    const int32_t* drawn = n_p + t * pixels;
+    const int32_t deepest = *std::max_element(drawn, drawn + pixels);
     deepest_of[t] = deepest;
     if (deepest == 0) return;
     const TileRows<scalar_t> rows(s, t, deepest, a_min);
     scalar_t* g_rows = &row_grads[s.offsets[t] * stride];  // this tile's rows, summed over its pixels
-    std::vector<scalar_t> behind(dim + 1);  // colour (and alpha) composited behind the current row
-    for (int64_t p = 0; p < pixels; ++p) {
-      const int64_t pix = t * pixels + p;
-      const int32_t drawn = n_p[pix];
-      if (drawn == 0) continue;
-      scalar_t px, py, dx, dy, sigma;
-      grid.pixel(t, p, px, py);
-      const scalar_t* g_color = &go[pix * dim];
-      const scalar_t g_alpha = ga[pix];
-      std::fill(behind.begin(), behind.end(), scalar_t(0));
-      scalar_t trans = t_p[pix];
-      for (int64_t r = drawn - 1; r >= 0; --r) {
-        if (!rows.reaches(r, px, py, dx, dy, sigma)) continue;
-        const scalar_t falloff = std::exp(-sigma);
-        const scalar_t raw = rows.op[r] * falloff;
-        const scalar_t alpha = std::min(a_max, raw);
-        if (!(alpha >= a_min)) continue;
-        trans /= (1 - alpha);  // transmittance in front of row r
-        const scalar_t w = alpha * trans;
-        scalar_t* g = &g_rows[r * stride];
-        const scalar_t* fr = &rows.feat[r * dim];
-        // d out / d alpha_r = T_r (f_r - behind_r) per channel; the alpha channel has f = 1.
-        scalar_t g_a = g_alpha * (1 - behind[dim]);
-        for (int64_t d = 0; d < dim; ++d) {
-          g[6 + d] += w * g_color[d];
-          g_a += g_color[d] * (fr[d] - behind[d]);
-          behind[d] = alpha * fr[d] + (1 - alpha) * behind[d];
+    // Per pixel: the transmittance in front of the current row (recovered back to front by division)
+    // and the colour (and alpha) composited behind it.
+    std::vector<scalar_t> trans(t_p + t * pixels, t_p + (t + 1) * pixels);
+    std::vector<scalar_t> behind(pixels * (dim + 1), scalar_t(0));
+    int64_t ox, oy;
+    grid.origin(t, ox, oy);
+    for (int64_t r = deepest - 1; r >= 0; --r) {
+      const Span box = rows.span(r, ox, oy, ts);
+      scalar_t* g = &g_rows[r * stride];
+      const scalar_t* fr = &rows.feat[r * dim];
+      for (int64_t ly = box.y0; ly < box.y1; ++ly) {
+        const scalar_t py = scalar_t(oy + ly) + scalar_t(0.5);
+        for (int64_t lx = box.x0; lx < box.x1; ++lx) {
+          const int64_t p = ly * ts + lx;
+          if (drawn[p] <= r) continue;  // row r lies beyond where this pixel stopped
+          scalar_t dx, dy, sigma;
+          if (!rows.reaches(r, scalar_t(ox + lx) + scalar_t(0.5), py, dx, dy, sigma)) continue;
+          const scalar_t falloff = std::exp(-sigma);
+          const scalar_t raw = rows.op[r] * falloff;
+          const scalar_t alpha = std::min(a_max, raw);
+          if (!(alpha >= a_min)) continue;
+          const int64_t pix = t * pixels + p;
+          trans[p] /= (1 - alpha);  // transmittance in front of row r
+          const scalar_t w = alpha * trans[p];
+          const scalar_t* g_color = &go[pix * dim];
+          scalar_t* bh = &behind[p * (dim + 1)];
+          // d out / d alpha_r = T_r (f_r - behind_r) per channel; the alpha channel has f = 1.
+          scalar_t g_a = ga[pix] * (1 - bh[dim]);
+          for (int64_t d = 0; d < dim; ++d) {
+            g[6 + d] += w * g_color[d];
+            g_a += g_color[d] * (fr[d] - bh[d]);
+            bh[d] = alpha * fr[d] + (1 - alpha) * bh[d];
+          }
+          bh[dim] = alpha + (1 - alpha) * bh[dim];
+          g_a *= trans[p];
+          if (raw > a_max) continue;  // clamped: no gradient to opacity or shape
+          g[5] += g_a * falloff;
+          const scalar_t g_sigma = -g_a * alpha;
+          g[0] -= g_sigma * (rows.ca[r] * dx + rows.cb[r] * dy);
+          g[1] -= g_sigma * (rows.cc[r] * dy + rows.cb[r] * dx);
+          g[2] += g_sigma * scalar_t(0.5) * dx * dx;
+          g[3] += g_sigma * dx * dy;
+          g[4] += g_sigma * scalar_t(0.5) * dy * dy;
         }
-        behind[dim] = alpha + (1 - alpha) * behind[dim];
-        g_a *= trans;
-        if (raw > a_max) continue;  // clamped: no gradient to opacity or shape
-        g[5] += g_a * falloff;
-        const scalar_t g_sigma = -g_a * alpha;
-        g[0] -= g_sigma * (rows.ca[r] * dx + rows.cb[r] * dy);
-        g[1] -= g_sigma * (rows.cc[r] * dy + rows.cb[r] * dx);
-        g[2] += g_sigma * scalar_t(0.5) * dx * dx;
-        g[3] += g_sigma * dx * dy;
-        g[4] += g_sigma * scalar_t(0.5) * dy * dy;
       }
     }
   });
