@@ -11,7 +11,7 @@ from hico_plugin.rasterizer.fused import bin_gaussians_fused, composite_fused, f
 from hico_plugin.rasterizer.projection import project_gaussians
 from hico_plugin.rasterizer.gsplat_backend import GsplatBackend
 from hico_plugin.rasterizer.torch_backend import TorchBackend
-from hico_plugin.rasterizer.tiling import bin_gaussians
+from hico_plugin.rasterizer.tiling import TileBins, bin_gaussians
 
 K = torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]])
 
@@ -219,3 +219,44 @@ def test_hung_kernel_build_is_killed_and_a_render_finishes(tmp_path):
         time.sleep(0.1)
     assert not status.is_file() or "State:\tZ" in status.read_text()
     assert not (tmp_path / "kernels" / "lock").exists() and not (tmp_path / "kernels" / "hico-built").exists()
+
+
+def _conic(cov):
+    return torch.linalg.inv(torch.tensor(cov, dtype=torch.float64))[[0, 0, 1], [0, 1, 1]]
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_fused_bounding_boxes_keep_every_pixel_of_hard_conics(dtype, tol):
+    # The fused kernel visits only each row's ellipse bounding box; one 16x16 tile holding every row,
+    # against the torch compositor, which tests every (pixel, row) pair.
+    rows = [  # (mean, conic (a, b, c), opacity)
+        ((7.5, 7.5), _conic([[50.0, 49.9], [49.9, 50.0]]), 0.9),  # needle along the diagonal
+        ((3.0, 12.0), _conic([[400.0, 0.0], [0.0, 0.05]]), 0.8),  # thin, longer than the tile
+        ((8.0, 8.0), torch.tensor([1.0, 2.0, 1.0]), 0.7),  # indefinite conic: unbounded set
+        ((8.0, 8.0), torch.tensor([-1.0, 0.0, -1.0]), 0.7),  # negative definite
+        ((15.5, 0.5), _conic([[0.3, 0.0], [0.0, 0.3]]), 0.99),  # tiny, on a pixel centre at the corner
+        ((16.0, 16.0), _conic([[0.31, 0.0], [0.0, 0.31]]), 0.6),  # just outside the tile's last pixel
+        ((float("nan"), 4.0), _conic([[2.0, 0.0], [0.0, 2.0]]), 0.9),  # not finite
+        ((4.0, 4.0), torch.tensor([float("inf"), 0.0, 1.0]), 0.9),
+        ((1e20, -1e20), _conic([[2.0, 0.0], [0.0, 2.0]]), 0.9),  # far outside
+        ((5.0, 9.0), _conic([[9.0, 3.0], [3.0, 4.0]]), 0.0),  # zero opacity
+        ((10.2, 5.7), _conic([[6.0, -2.0], [-2.0, 3.0]]), 1.0),  # clamped at alpha_max
+        ((2.5, 2.5), _conic([[1e-4, 0.0], [0.0, 1e-4]]), 0.5),  # smaller than a pixel
+    ]
+    means2d = torch.tensor([m for m, _, _ in rows], dtype=dtype)
+    conics = torch.stack([c.to(dtype) for _, c, _ in rows])
+    opacities = torch.tensor([o for _, _, o in rows], dtype=dtype)
+    features = torch.rand(len(rows), 4, generator=torch.Generator().manual_seed(3), dtype=dtype)
+    count = len(rows)
+    bins = TileBins(torch.arange(count), torch.zeros(count, dtype=torch.long), torch.tensor([0, count]), 1, 1, 16)
+    assert fused_available(), fused_module.EXTENSION.error
+    want = outputs_and_grads(composite, [means2d, conics, opacities, features], bins)
+    got = outputs_and_grads(composite_fused, [means2d, conics, opacities, features], bins)
+    assert (want[1] > 0).sum() > 100  # the rows do cover the tile
+    torch.testing.assert_close(got[0], want[0], atol=tol, rtol=tol)
+    torch.testing.assert_close(got[1], want[1], atol=tol, rtol=tol)
+    for name, a, b in zip(("means2d", "conics", "opacities", "features"), got[2], want[2]):
+        finite = torch.isfinite(b)
+        assert torch.equal(finite, torch.isfinite(a)), name
+        scale = b[finite].abs().max()
+        torch.testing.assert_close(a[finite] / scale, b[finite] / scale, atol=tol, rtol=0, msg=name)
