@@ -32,20 +32,28 @@ class ResolutionSchedule:
     """Image scale (side length, fraction of full) of the first step; 1.0 turns the schedule off."""
     full_at: float = 0.5
     """Fraction of max_steps by which the scale has risen (linearly in pixels per view) to 1."""
+    min_long_side: int = 480
+    """Never train on images whose long side is under this many pixels: smaller photos start at
+    the scale that gives this size, and photos this small or smaller train at full size throughout
+    (there, the few pixels saved cost more accuracy than they save time)."""
 
     def validate(self) -> None:
         if not 0.0 < self.start_scale <= 1.0:
             raise HicoError(f"config.resolution.start_scale: expected in (0, 1], got {self.start_scale}")
         if not 0.0 < self.full_at <= 1.0:
             raise HicoError(f"config.resolution.full_at: expected in (0, 1], got {self.full_at}")
+        if self.min_long_side < 0:
+            raise HicoError(f"config.resolution.min_long_side: expected >= 0, got {self.min_long_side}")
 
-    def scale(self, step: int, max_steps: int) -> float:
-        """Side-length scale of the images of ``step`` (0-based) in a run of ``max_steps``."""
-        if self.start_scale >= 1.0:
+    def scale(self, step: int, max_steps: int, long_side: int) -> float:
+        """Side-length scale of the images of ``step`` (0-based) in a run of ``max_steps`` whose
+        photos have a long side of ``long_side`` pixels."""
+        start = max(self.start_scale, min(1.0, self.min_long_side / max(1, long_side)))
+        if start >= 1.0:
             return 1.0
         progress = min(1.0, step / max(1.0, self.full_at * max_steps))
         # Linear in pixels: each stretch of steps adds the same number of pixels per view.
-        pixels = self.start_scale**2 + (1.0 - self.start_scale**2) * progress
+        pixels = start**2 + (1.0 - start**2) * progress
         # Rounded down, so full resolution starts exactly at full_at (1e-9: 0.25 stays 4 quanta).
         return min(1.0, math.floor(pixels**0.5 / _SCALE_QUANTUM + 1e-9) * _SCALE_QUANTUM)
 

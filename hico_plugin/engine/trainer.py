@@ -362,7 +362,8 @@ class Trainer:
                 try:
                     batch = rank_batch(self.dataset, self.train_indices, config.batch_size, config.seed, step,
                                        self.rank, self.world_size, self.device, getattr(self.model, "train_gt", None))
-                    batch = downscale_batch(batch, config.resolution.scale(step, config.max_steps))
+                    long_side = max(batch.cameras[0].width, batch.cameras[0].height)
+                    batch = downscale_batch(batch, config.resolution.scale(step, config.max_steps, long_side))
                     metrics, finite = optimizer_step(self.model, self.optimizers, batch, step, self.device,
                                                      self.world_size)
                 except HicoError as err:  # a bad training image: keep what was trained so far

@@ -30,18 +30,25 @@ def _project(camera: Camera, point: torch.Tensor) -> torch.Tensor:
 
 def test_schedule_rises_to_full_resolution_by_full_at_and_off_is_one():
     schedule = ResolutionSchedule(start_scale=0.25, full_at=0.5)
-    scales = [schedule.scale(step, 1000) for step in range(0, 1001, 10)]
+    scales = [schedule.scale(step, 1000, 4000) for step in range(0, 1001, 10)]
     assert scales[0] == 0.25
     assert all(b >= a for a, b in zip(scales, scales[1:]))
-    assert schedule.scale(499, 1000) < 1.0 and schedule.scale(500, 1000) == 1.0 and scales[-1] == 1.0
+    assert schedule.scale(499, 1000, 4000) < 1.0 and schedule.scale(500, 1000, 4000) == 1.0 and scales[-1] == 1.0
     # Linear in pixels: half way to full_at holds about half the pixels the schedule adds.
-    half = schedule.scale(250, 1000)
+    half = schedule.scale(250, 1000, 4000)
     assert abs(half**2 - (0.25**2 + 1.0) / 2) < 2 * (1 / 16)  # within the rounding to 1/16 of a side
     assert len(set(scales)) <= 16  # quantised: a handful of image sizes per run
-    assert all(ResolutionSchedule().scale(step, 1000) == 1.0 for step in (0, 500, 999))
+    assert all(ResolutionSchedule().scale(step, 1000, 4000) == 1.0 for step in (0, 500, 999))
 
 
-@pytest.mark.parametrize("field, value", [("start_scale", 0.0), ("start_scale", 1.5), ("full_at", 0.0)])
+def test_schedule_never_trains_below_min_long_side():
+    schedule = ResolutionSchedule(start_scale=0.25, full_at=0.5, min_long_side=480)
+    assert schedule.scale(0, 1000, 960) == 0.5  # starts at 480 px, not 240
+    assert all(schedule.scale(step, 1000, 320) == 1.0 for step in (0, 100, 999))  # small photos: off
+    assert schedule.scale(0, 1000, 1920) == 0.25
+
+
+@pytest.mark.parametrize("field, value", [("start_scale", 0.0), ("start_scale", 1.5), ("full_at", 0.0), ("min_long_side", -1)])
 def test_schedule_out_of_range_names_the_field(field, value):
     with pytest.raises(HicoError, match=f"config.resolution.{field}"):
         ResolutionSchedule(**{field: value}).validate()
@@ -89,7 +96,7 @@ class _RecorderConfig(ToyModelConfig):
 
 def test_trainer_trains_coarse_first_and_evaluates_at_full_resolution(tmp_path):
     config = toy_config(tmp_path, model=_RecorderConfig(), max_steps=12, save_every=0,
-                        resolution=ResolutionSchedule(start_scale=0.5, full_at=0.5))
+                        resolution=ResolutionSchedule(start_scale=0.5, full_at=0.5, min_long_side=0))
     trainer = config.setup()
     result = trainer.train()
     sizes = trainer.model.sizes
