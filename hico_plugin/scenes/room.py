@@ -9,12 +9,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hico_plugin.errors import HicoError
 from hico_plugin.scenes.base import SCENES, SceneConfig, SceneEffects
 from hico_plugin.scenes.orbits import orbit_rings
 from hico_plugin.scenes.raycast import Revolution, Sphere, box
 
 PAPER = (0.9, 0.86, 0.76)
 WALL_THICKNESS = 0.1
+ORBIT_REACH = 1.1 * 1.08  # the widest ring's radius over orbit_radius, with orbit_rings' 8 % jitter
 
 
 @dataclass
@@ -65,5 +67,8 @@ class RoomConfig(SceneConfig):
 
     def build_viewmats(self):
         radius = self.orbit_radius
+        if ORBIT_REACH * radius >= min(self.size[:2]) / 2:
+            raise HicoError(f"scene 'room': orbit_radius {radius} puts cameras in or behind the walls of a "
+                            f"{self.size[0]} x {self.size[1]} m room; expected < {min(self.size[:2]) / (2 * ORBIT_REACH):.2f}")
         return orbit_rings(self.num_views, [radius, 1.1 * radius, 0.9 * radius], [1.2, 1.55, 1.9],
                            np.array([0.0, 0.0, 1.3]), 0.1, self.seed)

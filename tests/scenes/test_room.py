@@ -6,7 +6,9 @@ import json
 
 import numpy as np
 import pycolmap
+import pytest
 
+from hico_plugin.errors import HicoError
 from hico_plugin.scenes import SCENES
 from hico_plugin.scenes.generate import generate_scene, scene_config
 
@@ -30,3 +32,8 @@ def test_room_is_a_closed_room_seen_from_inside(tmp_path):
     on_ceiling = (xyz[:, 2] > config.size[2] - 0.05) & (np.abs(xyz[:, :2]) < half - 0.2).all(axis=1)
     on_walls = (np.abs(xyz[:, :2]) > half - 0.05).any(axis=1)
     assert on_walls.mean() > 0.5 and on_ceiling.mean() < 0.005, (on_walls.mean(), on_ceiling.mean())
+
+
+def test_cameras_outside_the_room_are_refused(tmp_path):
+    with pytest.raises(HicoError, match="orbit_radius 2.5 puts cameras in or behind the walls"):
+        generate_scene("room", tmp_path / "room", orbit_radius=2.5, **TWIN)
