@@ -56,7 +56,7 @@ class RoomConfig(SceneConfig):
             *walls,
             box((0, 0, -t / 2), (width, depth, t), material="wood", color=(0.5, 0.34, 0.22), texture_scale=0.6),
             box((0, 0, height + t / 2), (width, depth, t), material="plaster", color=(0.93, 0.92, 0.9),
-                texture_scale=4.0),
+                texture_scale=2.0),
             Revolution(material="wood", color=(0.32, 0.22, 0.16), texture_scale=0.3, base=(0, 0, 0), height=1.0,
                        r0=0.28, r1=0.2),
             Revolution(material="plaster", color=(0.8, 0.78, 0.74), texture_scale=0.08, base=(0, 0, 1.0),
