@@ -34,8 +34,8 @@ from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_
 from hico_plugin.losses import LossConfig, Losses, default_losses
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
-from hico_plugin.model.effects import EFFECTS, EffectInputs, choose_effects, parse_effects
-from hico_plugin.model.effects.sky import SkyConfig
+from hico_plugin.model.effects import EFFECTS, RENAMED_EFFECTS, EffectInputs, choose_effects, parse_effects
+from hico_plugin.model.effects.environment import EnvironmentConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
 
@@ -78,12 +78,13 @@ class HiCoModelConfig(InstantiateConfig):
     """Loss components by registered name: photometric (rgb), DNGC (dngc) and those of installed plug-ins."""
     effects: str = "auto"
     """Image-formation effects to simulate: "auto" turns on exactly those the dataset analysis finds
-    (sky, exposure = per-image colour transform, lod = octree levels from the distance spread);
-    NAME=on|off forces one, e.g. "auto,sky=off" or "sky=on,exposure=off,lod=on"."""
-    sky: SkyConfig = dataclass_field(default_factory=SkyConfig)
-    """Learned directional sky composited behind the Gaussians (when the sky effect is on)."""
+    (environment = a directional background where no point explains the photos, exposure = per-image colour
+    transform, lod = octree levels from the distance spread); NAME=on|off forces one, e.g.
+    "auto,environment=off" or "environment=on,exposure=off,lod=on"."""
+    environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
+    """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Colour composited behind the Gaussians when the sky is off."""
+    """Colour composited behind the Gaussians when the environment effect is off."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
@@ -229,10 +230,14 @@ class HiCoModel(nn.Module):
             groups.update(self.active_effects[name].param_groups(module))
         return groups
 
+    def renamed_param_groups(self) -> dict[str, str]:
+        """Parameter groups of older checkpoints under their old names -> today's (the trainer's resume)."""
+        return dict(RENAMED_EFFECTS)
+
     def lr_schedules(self, max_steps: int) -> dict[str, LRSchedule]:
         groups = self.param_groups()
         rates = {group: rate for effect in self.active_effects.values() for group, rate in effect.default_lrs().items()}
-        rates.update(self.config.optimizers)
+        rates.update({RENAMED_EFFECTS.get(group, group): rate for group, rate in self.config.optimizers.items()})
         missing = sorted(set(groups) - set(rates))
         if missing:
             raise HicoError(f"model.optimizers: no entry for parameter group(s) {', '.join(missing)}")
@@ -339,9 +344,11 @@ class HiCoModel(nn.Module):
 
 
 def _effect_keys_of_older_checkpoints(module: nn.Module, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
-    """Checkpoints written before effects became components held the sky and the exposure transform
-    as ``sky.*`` and ``colour.*``: load them under ``effects.sky.*`` and ``effects.exposure.*``."""
-    for old, new in (("sky.", "effects.sky."), ("colour.", "effects.exposure.")):
+    """Checkpoints written before effects became components held the environment (then "sky") and the
+    exposure transform as ``sky.*`` and ``colour.*``, later the environment as ``effects.sky.*``: load
+    them under ``effects.environment.*`` and ``effects.exposure.*``."""
+    renamed = [(f"effects.{old}.", f"effects.{new}.") for old, new in RENAMED_EFFECTS.items()]
+    for old, new in (("sky.", "effects.environment."), ("colour.", "effects.exposure."), *renamed):
         for key in [k for k in state_dict if k.startswith(prefix + old)]:
             state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
 

@@ -171,9 +171,9 @@ def test_exported_gaussians_render_like_the_model(run_dir, tmp_path):
     with torch.no_grad():
         expected, _ = run.model.render(camera, ("rgb",))
         out = run.model.renderer(means, quats, scales, opacities, colors, camera, outputs=("rgb", "alpha"))
-        # the PLY holds the Gaussians; the model adds its sky, or its constant background when the
-        # data called for no sky (tiny has none)
-        rgb = (run.model.apply_effects(out, camera) if "sky" in run.model.effects
+        # the PLY holds the Gaussians; the model adds its environment, or its constant background when
+        # the data called for none (tiny has none)
+        rgb = (run.model.apply_effects(out, camera) if "environment" in run.model.effects
                else out.rgb + (1.0 - out.alpha) * run.model.background)
     # The float32 round trip through the COLMAP frame moves means by ~1e-7, which flips a few pixels
     # across the rasterizer's cut-offs (a 1e-7 jitter alone gives a max of ~6e-3), so the mean decides:

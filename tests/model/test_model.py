@@ -135,13 +135,14 @@ def test_masked_pixels_teach_nothing(tiny):
 
 def test_effects_are_built_applied_and_loaded_by_name(tiny):
     """The model names no effect: the chosen ones are built into ``effects`` and applied in
-    image-formation order (the sky behind the Gaussians, then the photo's exposure); a checkpoint from
-    before effects became components (``sky.*``, ``colour.*``) loads into them."""
-    model = _config(effects="sky=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
+    image-formation order (the environment behind the Gaussians, then the photo's exposure); checkpoints
+    from before effects became components (``sky.*``, ``colour.*``) and from before the environment was
+    renamed (``effects.sky.*``) load into them."""
+    model = _config(effects="environment=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
     order = list(model.active_effects)
-    assert set(order) == {"sky", "exposure", "lod"} and order.index("sky") < order.index("exposure")
-    assert set(model.effects) == {"sky", "exposure"}  # lod configures the field and builds nothing
-    assert {"sky", "exposure"} <= set(model.param_groups()) and {"sky", "exposure"} <= set(model.lr_schedules(10))
+    assert set(order) == {"environment", "exposure", "lod"} and order.index("environment") < order.index("exposure")
+    assert set(model.effects) == {"environment", "exposure"}  # lod configures the field and builds nothing
+    assert {"environment", "exposure"} <= set(model.param_groups()) <= set(model.lr_schedules(10))
     assert model.stats()["effect_parameters/exposure"] == 12 * len(tiny.train_indices)
     with torch.no_grad():
         model.effects["exposure"].matrix.mul_(2.0)
@@ -149,16 +150,17 @@ def test_effects_are_built_applied_and_loaded_by_name(tiny):
         out, gaussians = model.render(camera, ("rgb",))
         bare = model.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                               gaussians.colors, model.appearance_camera(camera), outputs=("rgb", "alpha"))
-        sky = model.effects["sky"](camera)
-    torch.testing.assert_close(out.rgb, 2.0 * (bare.rgb + (1 - bare.alpha) * sky))
+        environment = model.effects["environment"](camera)
+    torch.testing.assert_close(out.rgb, 2.0 * (bare.rgb + (1 - bare.alpha) * environment))
 
-    old_names = {key.replace("effects.sky.", "sky.").replace("effects.exposure.", "colour."): value
-                 for key, value in model.state_dict().items()}
-    assert "colour.matrix" in old_names and "sky.mlp.0.weight" in old_names
-    fresh = _config(effects="sky=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
-    fresh.load_state_dict(old_names)
-    torch.testing.assert_close(fresh.effects["exposure"].matrix, model.effects["exposure"].matrix)
-    torch.testing.assert_close(fresh.effects["sky"].mlp[0].weight, model.effects["sky"].mlp[0].weight)
+    for old in ("sky.", "effects.sky."):
+        old_names = {key.replace("effects.environment.", old).replace("effects.exposure.", "colour."): value
+                     for key, value in model.state_dict().items()}
+        assert "colour.matrix" in old_names and f"{old}mlp.0.weight" in old_names
+        fresh = _config(effects="sky=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
+        fresh.load_state_dict(old_names)
+        torch.testing.assert_close(fresh.effects["exposure"].matrix, model.effects["exposure"].matrix)
+        torch.testing.assert_close(fresh.effects["environment"].mlp[0].weight, model.effects["environment"].mlp[0].weight)
 
 
 def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losses(tiny):
