@@ -50,7 +50,7 @@ def psnr_on_test_views(model, dataset, baked: BakedGaussians) -> dict[str, float
     # What lies behind the Gaussians (a learned environment) is no part of the file; it is composited from
     # the model as its own renders do, so the figures measure the Gaussians (without it a sky scene's
     # baked render scores ~9 dB on city-block whatever the Gaussians).
-    behind = any(effect.replaces_background for effect in model.active_effects.values())
+    behind = model.composites_behind()
     views = [int(i) for i in dataset.test_indices]
     config = model.renderer.config
     for index in views:

@@ -56,6 +56,7 @@ def default_optimizers() -> dict[str, ParamGroupOptimizerConfig]:
         "mlp_color": lr(0.008, 5e-5),
         "clca": lr(0.008, 5e-5),  # follows the colour MLP (paper Sec. 4.1)
         "appearance": lr(0.05, 5e-4),
+        "background": lr(0.03, 3e-4),  # 3 numbers; Adam moves them <= lr a step: black to white in ~35
     }
     effect_groups = {group: lr for _, effect in EFFECTS.registered() for group, lr in effect().default_lrs().items()}
     return {**field_groups, **effect_groups}
@@ -84,7 +85,12 @@ class HiCoModelConfig(InstantiateConfig):
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Colour composited behind the Gaussians when the environment effect is off."""
+    """Colour composited behind the Gaussians when the environment effect is off (where learned, its start)."""
+    learn_background: bool = True
+    """Learn that colour (parameter group "background"): with the environment off, the best constant
+    behind the Gaussians, not black. Splatfacto trains over a random colour instead so that the
+    Gaussians cannot lean on it (nerfstudio's splatfacto.py, _get_background_color); a learned
+    constant also fits a plain backdrop the Gaussians do not reach."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
@@ -146,7 +152,11 @@ class HiCoModel(nn.Module):
         self.renderer = config.renderer.setup()
         self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
-        self.register_buffer("background", torch.tensor(config.background, dtype=torch.float32))
+        background = torch.tensor(config.background, dtype=torch.float32)
+        if config.learn_background and not self.composites_behind():
+            self.background = nn.Parameter(background)
+        else:  # unused behind a composited environment, or kept as configured
+            self.register_buffer("background", background)
         inputs = EffectInputs(dataset, train_ids, self.effects_report, config)
         built = {name: effect.build(inputs) for name, effect in self.active_effects.items()}
         self.effects = nn.ModuleDict({name: module for name, module in built.items() if module is not None})
@@ -180,7 +190,7 @@ class HiCoModel(nn.Module):
         gaussians = self.field.decode(camera, visible_ids, context_enabled=context_enabled)
         # An effect that composites what lies behind the Gaussians does it from alpha; otherwise the
         # rasterizer composites the constant background.
-        behind = any(effect.replaces_background for effect in self.active_effects.values())
+        behind = self.composites_behind()
         wanted = set(outputs) | ({"alpha"} if behind and "rgb" in outputs else set())
         out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                             gaussians.colors, camera, outputs=tuple(sorted(wanted)),
@@ -188,6 +198,10 @@ class HiCoModel(nn.Module):
         if out.rgb is not None:
             out.rgb = self.apply_effects(out, camera)
         return out, gaussians
+
+    def composites_behind(self) -> bool:
+        """Whether an effect that is on composites what lies behind the Gaussians (the environment)."""
+        return any(effect.replaces_background for effect in self.active_effects.values())
 
     def apply_effects(self, out: RenderOutputs, camera: Camera) -> Tensor:
         """``out.rgb`` (rendered without background when an effect composites it) with every effect
@@ -228,6 +242,8 @@ class HiCoModel(nn.Module):
         groups = self.field.param_groups()
         for name, module in self.effects.items():
             groups.update(self.active_effects[name].param_groups(module))
+        if isinstance(self.background, nn.Parameter):
+            groups["background"] = [self.background]
         return groups
 
     def renamed_param_groups(self) -> dict[str, str]:

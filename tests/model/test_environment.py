@@ -62,6 +62,7 @@ def test_model_composites_the_environment_only_where_alpha_leaves_room():
     torch.testing.assert_close(out.rgb, bare.rgb + (1 - bare.alpha) * environment)
     groups = with_environment.param_groups()
     assert "environment" in groups and "environment" in with_environment.lr_schedules(100)
+    assert "background" not in groups  # the environment replaces the constant background
 
     without = HiCoModelConfig(renderer=RendererConfig(use_compile=False), eval_lpips="none",
                               effects="auto,sky=off", background=(1.0, 0.0, 0.0)).setup(dataset=dataset)
@@ -75,7 +76,7 @@ def test_model_composites_the_environment_only_where_alpha_leaves_room():
 
 
 def test_a_run_from_when_the_environment_was_called_sky_loads_and_resumes(tmp_path):
-    """A config.yml naming ``sky`` (config class, field, effect and optimizer group)
+    """A config.yml naming ``sky`` (config class, field, effect and optimizer group; no learned background)
     with a checkpoint holding ``effects.sky.*`` and the optimizer group ``sky`` loads and trains on."""
     import dataclasses
 
@@ -88,7 +89,7 @@ def test_a_run_from_when_the_environment_was_called_sky_loads_and_resumes(tmp_pa
                  "--model.renderer.no-use-compile", "--model.effects", "environment=on,exposure=off,lod=off"]))
     run = tmp_path
     text = (run / "config.yml").read_text()
-    for today, before in (("environment=on", "sky=on"),
+    for today, before in (("environment=on", "sky=on"), ("  learn_background: true\n", ""),
                           ("environment: !dataclass:hico_plugin.model.effects.environment.EnvironmentConfig",
                            "sky: !dataclass:hico_plugin.model.effects.sky.SkyConfig"),
                           ("    environment: !dataclass:hico_plugin.engine", "    sky: !dataclass:hico_plugin.engine")):
@@ -103,7 +104,7 @@ def test_a_run_from_when_the_environment_was_called_sky_loads_and_resumes(tmp_pa
     torch.save(payload, checkpoint)
 
     loaded = load_run(run / "config.yml")
-    assert "environment" in loaded.model.effects
+    assert loaded.model.config.learn_background is False and "environment" in loaded.model.effects
     torch.testing.assert_close(loaded.model.effects["environment"].mlp[0].weight,
                                payload["model"]["effects.sky.mlp.0.weight"])
     trainer = dataclasses.replace(load_config(run / "config.yml"), max_steps=3, resume=True).setup()

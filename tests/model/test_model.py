@@ -163,6 +163,30 @@ def test_effects_are_built_applied_and_loaded_by_name(tiny):
         torch.testing.assert_close(fresh.effects["environment"].mlp[0].weight, model.effects["environment"].mlp[0].weight)
 
 
+def test_without_the_environment_the_background_is_a_learned_constant(tiny):
+    """Off, the environment leaves a constant behind the Gaussians that the optimizers train as the
+    group "background" (not black): fitted to renders composited over a known colour, it finds it."""
+    from hico_plugin.engine.optimizers import Optimizers
+
+    model = _config(effects="environment=off,exposure=off,lod=off").setup(dataset=tiny, total_steps=300)
+    assert model.param_groups()["background"] == [model.background] and model.background.requires_grad
+    torch.testing.assert_close(model.background.detach(), torch.zeros(3))  # starts at the configured colour
+    camera = tiny.cameras[int(tiny.train_indices[0])].scaled(0.5)
+    true = torch.tensor([0.2, 0.7, 0.45])
+    with torch.no_grad():
+        out, _ = model.render(camera, ("rgb", "alpha"))
+        target = out.rgb - (1 - out.alpha) * model.background + (1 - out.alpha) * true
+    optimizers = Optimizers(model.param_groups(), model.lr_schedules(300))
+    for step in range(150):  # the background's own group only: the Gaussians stay as they are
+        optimizers.zero_grad()
+        (model.render(camera, ("rgb",))[0].rgb - target).abs().mean().backward()
+        optimizers.set_lrs(step)
+        optimizers.optimizers["background"].step()
+    torch.testing.assert_close(model.background.detach(), true, atol=0.01, rtol=0)
+    fixed = _config(effects="environment=off,exposure=off,lod=off", learn_background=False).setup(dataset=tiny)
+    assert "background" not in fixed.param_groups() and not fixed.background.requires_grad
+
+
 def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losses(tiny):
     """The model decides the schedule scale once (scale_schedules) and the field and DNGC both take
     it; the octree's level count is the one the LOD finding and hico-inspect report."""
