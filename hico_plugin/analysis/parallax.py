@@ -69,8 +69,8 @@ class Parallax:
             return ("near uncovered surfaces (walls or ceilings without features): these cells move with the parallax of "
                     f"the nearest reconstructed points ({counts})")
         if self.still >= self.cells:
-            return (f"open sky: the reconstructed points around it are too far to move between views ({self.still} "
-                    f"of {self.cells + self.still} cell pairs within a cell), so it is a distant background")
+            return (f"open sky: the reconstructed points around these cells are too far to move between views "
+                    f"({self.still} of {self.cells + self.still} cell pairs within a cell), so they show a distant background")
         return f"open sky: these cells do not move with the parallax of the nearest reconstructed points ({counts})"
 
     def figures(self) -> dict[str, Any]:

@@ -70,4 +70,4 @@ def test_flat_colour_and_few_cells():
     assert Parallax(cells=10, near_better=10, far_better=0, still=5).kind is None
     assert "sky" not in Parallax(cells=10, near_better=10, far_better=0, still=5).description()
     assert Parallax(cells=10, near_better=0, far_better=0, still=40).description().startswith(
-        "open sky: the reconstructed points around it are too far to move")
+        "open sky: the reconstructed points around these cells are too far to move")
