@@ -8,7 +8,8 @@ become floaters. A small MLP on the unit ray direction needs no up axis (COLMAP 
 stays smooth: ``rgb = rgb_gaussians + (1 - alpha) * environment(direction)``. It is exact for a distant
 background and an approximation for near surfaces that still pays: on instant-ngp's fox (rose paper
 behind the head, 16 % of the photos uncovered) the colour-corrected test PSNR was 28.01 dB with it
-against 26.04 dB over constant black.
+against 26.04 dB over constant black; on the built-in room (32 views at 160x120, 300 steps, seed 42)
+29.13 dB with it, 28.11 over the learned constant background that replaces it when off, 24.69 over black.
 """
 
 from __future__ import annotations
