@@ -13,7 +13,7 @@ closer by more than ``MARGIN``. The cells are near surfaces when the points' dep
 parallax either way and counts as distant — the directional background models it as well as a sky.
 
 Share of the cell pairs whose colour matches better at the points' depth / at infinity, built-in twins
-of 16 views at 96x72 and 24 at 128x96, seeds 0-3: room 46-57 % / 6-15 %, pagoda 1-16 % / 50-83 %,
+of 16 views at 96x72 and 24 at 128x96, seeds 0-3: room 42-60 % / 8-15 %, pagoda 1-16 % / 50-83 %,
 city-block 3-7 % / 3-34 % (its sky's gradient runs across the baselines, so most pairs match either
 way); instant-ngp's fox (50 phone photos of a fox head on rose paper): 72 % / 5 %.
 """
