@@ -200,7 +200,7 @@ def test_a_plugin_effect_is_detected_chosen_built_and_trained(site, tmp_path):
     assert auto.returncode == 0, auto.stderr
     assert re.search(r"effect  vignetting: (on|off) — corners at", auto.stdout)
     choices = json.loads((tmp_path / "auto" / "eval.json").read_text())["results"]["effects"]
-    assert set(choices) == {"exposure", "lod", "sky", "vignetting"}
+    assert set(choices) == {"environment", "exposure", "lod", "vignetting"}
 
     on = _train_tiny(site, tmp_path, tmp_path / "on", "--model.effects", "auto,vignetting=on", steps=3)
     assert on.returncode == 0, on.stderr

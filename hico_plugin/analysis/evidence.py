@@ -1,6 +1,6 @@
 """What a capture's findings are measured from: its sparse points, which view sees which of them, and the
 views' pixels, shared by the measurements of this package (each finding one module: photo_gains,
-sky_cells, image_quality, view_distances) and computed once per analysis (``DatasetEvidence``).
+uncovered_cells, image_quality, view_distances) and computed once per analysis (``DatasetEvidence``).
 
 A finding says whether the capture shows an image-formation effect, with the measured figures and a
 reason in words; the model's effects (``hico_plugin.model.effects``) decide from it what to simulate.

@@ -62,7 +62,7 @@ class BenchConfig(InstantiateConfig):
     format: FormatChoice = None
     """Layout of --data; default: detected from the directory's contents."""
     effects: tuple[str, ...] = ("auto",)
-    """The effects axis: each value is one --model.effects setting (e.g. "auto,sky=off"); every
+    """The effects axis: each value is one --model.effects setting (e.g. "auto,environment=off"); every
     preset x scene runs once per value. A value other than "auto" names its rows "PRESET [VALUE]"."""
     budgets: tuple[int, ...] = (100, 200, 400)
     """Training budgets in optimizer steps (checkpoints of one run when schedule is nested). The
@@ -119,10 +119,12 @@ class BenchConfig(InstantiateConfig):
 
 BENCH_MODES: dict[str, BenchConfig] = {
     "full": BenchConfig(),
-    # each effect on / off on a scene that has sky and exposure (pagoda) and on one with neither (tiny)
-    "effects": BenchConfig(presets=("hico-gs-lite",), scenes=("pagoda", "tiny"), budgets=(200,), lpips="none",
-                           effects=("sky=off,exposure=off,lod=on", "sky=on,exposure=off,lod=on",
-                                    "sky=off,exposure=on,lod=on", "sky=off,exposure=off,lod=off", "auto")),
+    # each effect on / off on a scene that has sky and exposure (pagoda), on one whose walls and ceiling
+    # no point explains (room) and on one with neither (tiny)
+    "effects": BenchConfig(presets=("hico-gs-lite",), scenes=("pagoda", "room", "tiny"), budgets=(200,), lpips="none",
+                           effects=("environment=off,exposure=off,lod=on", "environment=on,exposure=off,lod=on",
+                                    "environment=off,exposure=on,lod=on", "environment=off,exposure=off,lod=off",
+                                    "auto")),
     "quick": BenchConfig(presets=("octree-gs", "hico-gs"), scenes=("tiny",), budgets=(20, 40), lpips="none",
                          downscale=1, max_eval_views=2),
 }

@@ -26,7 +26,7 @@ class InspectConfig(DataParserConfig):
     """Decode every image and mask (fills the undistortion cache); --no-verify-images skips it on big
     scenes (headers are still checked against the cameras)."""
     effects: bool = True
-    """Analyse which image-formation effects the capture has (exposure, sky, noise, distortion,
+    """Analyse which image-formation effects the capture has (exposure, environment, noise, distortion,
     multi-distance, LOD levels): what --model.effects auto would turn on."""
     effects_json: Optional[Path] = None
     """Also write the effects analysis (per-image gains included) to this JSON file."""

@@ -38,23 +38,28 @@ _ENUM_TAG = "!enum:"
 # Config classes that became plain mappings; config.yml files of runs trained before still load.
 _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a {name: LossConfig} mapping
 # Config classes that moved to another module: the path older config.yml files name -> today's.
-_MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.sky.SkyConfig"}
+_MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig",
+          "hico_plugin.model.effects.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig"}
+# Fields renamed since runs were trained: class -> {the name older config.yml files use: today's}.
+_RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environment"}}
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
 # field gets the value that reproduces the run (its scene frame was not rotated, or rotated by the
-# cameras' mean up; its anchors were not kept nested, or its kept ancestors were drawn), not today's default.
+# cameras' mean up; its anchors were not kept nested, or its kept ancestors were drawn; its background was
+# a fixed colour), not today's default.
 _ADDED_FIELDS = {
     "hico_plugin.data.parser.DataParserConfig": {"orient": False, "orient_method": "up"},
     "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False, "draw_ancestors": True},
+    "hico_plugin.model.hico.HiCoModelConfig": {"learn_background": False},
 }
 
 
-def _added_fields(cls: type) -> dict[str, Any]:
-    """The ``_ADDED_FIELDS`` values of ``cls`` and of the classes it derives from (a run's config.yml
-    names the subclass it was built with, e.g. the data source, not the parser config that has the field)."""
-    added: dict[str, Any] = {}
+def _inherited(table: dict[str, dict[str, Any]], cls: type) -> dict[str, Any]:
+    """The entries of ``table`` for ``cls`` and the classes it derives from (a run's config.yml names the
+    subclass it was built with, e.g. the data source, not the parser config that has the field)."""
+    merged: dict[str, Any] = {}
     for base in reversed(cls.__mro__):
-        added.update(_ADDED_FIELDS.get(f"{base.__module__}.{base.__qualname__}", {}))
-    return added
+        merged.update(table.get(f"{base.__module__}.{base.__qualname__}", {}))
+    return merged
 
 
 class _ConfigDumper(yaml.SafeDumper):
@@ -144,7 +149,8 @@ def _construct_dataclass(loader: _ConfigLoader, suffix: str, node: yaml.Node) ->
         raise HicoError(f"{loader.name}: '{suffix}' is not a config dataclass")
     values = loader.construct_mapping(node, deep=True) if isinstance(node, yaml.MappingNode) else {}
     init_fields = {f.name for f in dataclasses.fields(cls) if f.init}
-    values = {**_added_fields(cls), **values}
+    renamed = _inherited(_RENAMED_FIELDS, cls)
+    values = {**_inherited(_ADDED_FIELDS, cls), **{renamed.get(name, name): value for name, value in values.items()}}
     unknown = sorted(set(values) - init_fields)
     if unknown:
         raise HicoError(f"{loader.name}: unknown field(s) {', '.join(unknown)} for {cls.__qualname__}")

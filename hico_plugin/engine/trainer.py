@@ -309,7 +309,8 @@ class Trainer:
         """Restore model, optimizers, step, train time and RNG states from ``payload`` (read from ``path``)."""
         restore_model(self.model, payload, Path(path))
         self.optimizers = self._make_optimizers()  # after loading: the model may hold new Parameters
-        self.optimizers.load_state_dict(payload["optimizers"])
+        renamed = getattr(self.model, "renamed_param_groups", dict)()  # an older checkpoint's group names
+        self.optimizers.load_state_dict({renamed.get(name, name): state for name, state in payload["optimizers"].items()})
         self.step = int(payload["step"])
         self.clock = StepClock(float(payload.get("train_seconds", 0.0)))
         restore_rank_rng(payload, self.rank, self.world_size)

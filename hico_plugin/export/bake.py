@@ -13,7 +13,8 @@ enough to select every level would read them.
 
 The appearance is neutral by default, what test views and the viewer render: the decoder's mean
 appearance embedding and no per-photo colour transform (exposure). A reference photo's appearance
-can be baked in instead. What lies behind the Gaussians (the sky) is not Gaussians and is left out.
+can be baked in instead. What lies behind the Gaussians (the environment, or the constant background) is
+not Gaussians and is left out.
 """
 
 from __future__ import annotations

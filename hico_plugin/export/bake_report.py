@@ -39,7 +39,7 @@ def psnr_on_test_views(model, dataset, baked: BakedGaussians) -> dict[str, float
     """Mean PSNR (dB) over the test views of ``model`` (a HiCoModel): ``psnr_model``, its own render;
     ``psnr_baked``, ``baked`` rasterized (the functional ``rasterize`` with the model's backend and
     cut-offs) and composited as the model composites its own Gaussians (its constant background, or
-    its learned sky, which the file does not hold);
+    its learned environment, which the file does not hold);
     ``psnr_baked_vs_model``, the baked render against the model's, what baking loses apart from the
     model's own error. None without test views.
 
@@ -47,10 +47,10 @@ def psnr_on_test_views(model, dataset, baked: BakedGaussians) -> dict[str, float
     file does (up to its float32 round trip).
     """
     sums = {"psnr_model": 0.0, "psnr_baked": 0.0, "psnr_baked_vs_model": 0.0}
-    # What lies behind the Gaussians (a learned sky) is no part of the file; it is composited from the
-    # model as its own renders do, so the figures measure the Gaussians (without it a sky scene's
+    # What lies behind the Gaussians (a learned environment) is no part of the file; it is composited from
+    # the model as its own renders do, so the figures measure the Gaussians (without it a sky scene's
     # baked render scores ~9 dB on city-block whatever the Gaussians).
-    behind = any(effect.replaces_background for effect in model.active_effects.values())
+    behind = model.composites_behind()
     views = [int(i) for i in dataset.test_indices]
     config = model.renderer.config
     for index in views:

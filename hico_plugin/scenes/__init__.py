@@ -7,6 +7,7 @@ names to their config dataclasses.
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig, SceneEffects
 from hico_plugin.scenes.city_block import CityBlockConfig, CityBlockEffects
 from hico_plugin.scenes.pagoda import PagodaConfig, PagodaEffects
+from hico_plugin.scenes.room import RoomConfig, RoomEffects
 from hico_plugin.scenes.tiny import TinyConfig, TinyEffects
 
 __all__ = [
@@ -18,6 +19,8 @@ __all__ = [
     "CityBlockEffects",
     "PagodaConfig",
     "PagodaEffects",
+    "RoomConfig",
+    "RoomEffects",
     "TinyConfig",
     "TinyEffects",
 ]

@@ -77,6 +77,9 @@ class SceneConfig(InstantiateConfig):
     """Target number of SfM-like sparse points."""
     sparse_noise: float = 0.002
     """Sparse point position noise, as a fraction of the distance to the observing camera."""
+    min_feature_gradient: float = 0.0
+    """Least gradient (8-bit grey levels per pixel, after a 1 px blur) where a sparse point can be found, as
+    SIFT drops low-contrast keypoints (Lowe 2004, Sec. 4); 0 lets any pixel with texture propose one."""
     surface_spacing: float = 0.1
     """Spacing (metres) of the dense ground-truth surface samples."""
     sfm: bool = False

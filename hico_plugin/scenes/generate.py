@@ -185,7 +185,8 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
     np.save(out / "ground_truth" / "surface_points.npy", surface)
 
     t_sparse = time.perf_counter()
-    sparse = feature_points(images, depths, scene.viewmats, scene.K, config.sparse_points, config.sparse_noise, config.seed)
+    sparse = feature_points(images, depths, scene.viewmats, scene.K, config.sparse_points, config.sparse_noise, config.seed,
+                            min_gradient=config.min_feature_gradient)
     reconstruction = build_reconstruction(scene, sparse)
     reconstruction.write_binary(str(out / "sparse" / "0"))
     t_sparse = time.perf_counter() - t_sparse

@@ -61,12 +61,14 @@ def feature_points(
     position_noise: float,
     seed: int,
     max_track: int = 12,
+    min_gradient: float = 0.0,
 ) -> SparsePoints:
     """Sample ~``count`` points like SfM would find them.
 
     images: [C, H, W, 3] uint8, depths: [C, H, W] camera z (0 = none), viewmats: [C, 4, 4].
     Each view proposes pixels with probability proportional to image gradient magnitude (features
-    live on texture and edges); a proposal is kept when at least one other view sees its surface
+    live on texture and edges, and none where the 1 px-blurred grey gradient is below ``min_gradient``
+    levels per pixel); a proposal is kept when at least one other view sees its surface
     point unoccluded. Tracks list up to ``max_track`` observing views (the proposing view first);
     keypoints get 0.5 px noise and positions ``position_noise`` x distance noise."""
     rng = np.random.default_rng([seed, 5])
@@ -76,7 +78,10 @@ def feature_points(
     for view in range(C):  # one proposal batch per camera
         grey = cv2.cvtColor(images[view], cv2.COLOR_RGB2GRAY).astype(np.float32)
         strength = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)).ravel()
-        strength = strength * (depths[view].ravel() > 0)
+        blurred = cv2.GaussianBlur(grey, (0, 0), 1.0)
+        # a 3x3 Sobel answers a ramp of slope s with 8 s
+        contrast = np.hypot(cv2.Sobel(blurred, cv2.CV_32F, 1, 0), cv2.Sobel(blurred, cv2.CV_32F, 0, 1)).ravel() / 8
+        strength = strength * (depths[view].ravel() > 0) * (contrast >= min_gradient)
         total = strength.sum()
         if total <= 0:
             continue

@@ -143,6 +143,21 @@ def foliage(uv, points, color, scale):
     return _tint(color, len(uv)) * (0.55 + 0.7 * fbm(uv, 6.0 / scale))[:, None]
 
 
+@MATERIALS.register("wallpaper")
+def wallpaper(uv, points, color, scale):
+    """Papered wall: round flowers (a red bloom ringed by green leaves) on a half-drop grid of period
+    ``scale``, on a plain ground of ``color`` that changes only slowly (a faint mottle): features where
+    the flowers are, smooth paper between them, like the rose paper behind the fox of instant-ngp's
+    capture."""
+    row = np.floor(uv[:, 1] / scale)
+    local = np.stack([np.mod(uv[:, 0] / scale + 0.5 * np.mod(row, 2), 1.0), np.mod(uv[:, 1] / scale, 1.0)], 1)
+    radius = np.linalg.norm(local - 0.5, axis=1)  # in periods, from the motif's centre
+    petals = 0.05 * np.cos(5 * np.arctan2(local[:, 1] - 0.5, local[:, 0] - 0.5))
+    out = _tint(color, len(uv)) * (0.88 + 0.24 * value_noise(uv, 0.8 / scale))[:, None]
+    out = np.where((radius < 0.2 + petals)[:, None], [[0.35, 0.5, 0.3]], out)  # leaves
+    return np.where((radius < 0.13 + petals)[:, None], [[0.7, 0.18, 0.22]], out)  # bloom
+
+
 @MATERIALS.register("street")
 def street(uv, points, color, scale):
     """City ground on a grid of pitch ``scale``: roads centred on x, y = (k + 1/2) * scale with dashed

@@ -22,8 +22,9 @@ from helpers_datasets import write_without_tracks
 
 SMALL = dict(num_views=16, width=96, height=72, pixel_samples=1)
 # effect declared by a scene -> the analysis finding that must agree with it. Sensor noise is left
-# out: the noise estimate needs flat unclipped regions and reads texture as noise without a sky.
-FINDING = {"exposure": "exposure", "sky": "sky", "multi_distance": "multi_distance"}
+# out: the noise estimate needs flat unclipped regions and reads texture as noise without a sky. A
+# declared sky must be found as open sky (the environment finding's kind).
+FINDING = {"exposure": "exposure", "multi_distance": "multi_distance"}
 
 
 def _combinations():
@@ -45,6 +46,9 @@ def test_detector_agrees_with_declared_effects(name, effects):
     report = analyze_effects(dataset)
     for effect, finding in FINDING.items():  # undeclared effects are absent from the scene
         assert report.present(finding) == effects.get(effect, False), (effect, report.effects[finding].reason)
+    environment = report.effects["environment"]
+    open_sky = environment.present and environment.figures["kind"] == "open sky"
+    assert open_sky == effects.get("sky", False), environment.reason
 
 
 def test_exposure_gains_match_the_generator():
@@ -77,7 +81,7 @@ def test_appearance_starts_from_the_measured_gains():
     from hico_plugin.model.hico import HiCoModelConfig
 
     path, dataset = _load("pagoda", {"exposure": True, "sky": True, "sensor_noise": False})
-    model = HiCoModelConfig(effects="auto,sky=off,lod=off").setup(dataset=dataset, total_steps=100)
+    model = HiCoModelConfig(effects="auto,environment=off,lod=off").setup(dataset=dataset, total_steps=100)
     colour = model.effects["exposure"]
     true = np.log2(np.array(json.loads((path / "scene.json").read_text())["exposure_gains"]))
     true = (true - true.mean(axis=0))[dataset.train_indices.numpy()]
@@ -111,12 +115,13 @@ def test_affine_colour_is_identity_for_views_without_a_training_slot():
 
 
 def test_effects_spec_parsing():
-    assert parse_effects("auto") == {"exposure": "auto", "lod": "auto", "sky": "auto"}
-    assert parse_effects("auto,sky=off")["sky"] == "off"
+    assert parse_effects("auto") == {"environment": "auto", "exposure": "auto", "lod": "auto"}
+    assert parse_effects("auto,environment=off")["environment"] == "off"
+    assert parse_effects("auto,sky=off")["environment"] == "off"  # the environment's old name
     with pytest.raises(HicoError, match="unknown effect 'fog'"):
         parse_effects("fog=on")
     with pytest.raises(HicoError, match="expected 'auto'"):
-        parse_effects("sky")
+        parse_effects("environment")
 
 
 def test_bench_effects_axis_plans_one_run_per_effects_value(tmp_path):
@@ -129,5 +134,6 @@ def test_bench_effects_axis_plans_one_run_per_effects_value(tmp_path):
     assert len(runs) == len(bench.scenes) * len(bench.effects)
     by_effects = {r["effects"]: r for r in runs if r["scene"] == "tiny"}
     assert by_effects["auto"]["preset"] == "hico-gs-lite"
-    assert by_effects["sky=on,exposure=off,lod=on"]["config"].model.effects == "sky=on,exposure=off,lod=on"
+    spec = "environment=on,exposure=off,lod=on"
+    assert by_effects[spec]["config"].model.effects == spec
     assert len({r["run_dir"] for r in runs}) == len(runs)  # every effects value trains its own run

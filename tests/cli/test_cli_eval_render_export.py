@@ -171,17 +171,19 @@ def test_exported_gaussians_render_like_the_model(run_dir, tmp_path):
     with torch.no_grad():
         expected, _ = run.model.render(camera, ("rgb",))
         out = run.model.renderer(means, quats, scales, opacities, colors, camera, outputs=("rgb", "alpha"))
-        # the PLY holds the Gaussians; the model adds its sky, or its constant background when the
-        # data called for no sky (tiny has none)
-        rgb = (run.model.apply_effects(out, camera) if "sky" in run.model.effects
+        # the PLY holds the Gaussians; the model adds its environment, or its constant background when
+        # the data called for none (tiny has none)
+        rgb = (run.model.apply_effects(out, camera) if "environment" in run.model.effects
                else out.rgb + (1.0 - out.alpha) * run.model.background)
     # The float32 round trip through the COLMAP frame moves means by ~1e-7, which flips a few pixels
     # across the rasterizer's cut-offs (a 1e-7 jitter alone gives a max of ~6e-3), so the mean decides:
-    # correct 2.0e-6; a wxyz <-> xyzw mix-up 3.2e-3 (max 3.3e-2). Tiny loads unrotated (its cameras are
+    # correct 2.0e-6 with the background fixed black, 7.8e-6 since it is learned (the 2-step run's
+    # Gaussians differ, and so do the pixels at the cut-offs; alpha still matches to 1e-6); a wxyz <-> xyzw
+    # mix-up 3.2e-3 (max 3.3e-2). Tiny loads unrotated (its cameras are
     # level, and its 300 sparse points give too few wall normals to turn it), so the quaternions' frame mapping is tested with a random
     # rotation in export/test_export.py.
     error = (rgb - expected.rgb).abs()
-    assert error.mean() < 5e-6 and error.max() < 1e-2
+    assert error.mean() < 2e-5 and error.max() < 1e-2
 
 
 def test_export_anchors_with_options_after_the_target(run_dir, tmp_path):

@@ -13,7 +13,7 @@ import torch
 
 from hico_plugin.cli.train import parse as parse_train
 from hico_plugin.cli.train import train
-from hico_plugin.analysis.sky_cells import up_vector
+from hico_plugin.analysis.uncovered_cells import up_vector
 from hico_plugin.data import DATA_FORMATS, DataParserConfig
 from hico_plugin.data.transform import scene_up
 from hico_plugin.errors import HicoError

@@ -110,15 +110,18 @@ def test_a_run_from_before_orientation_and_kept_ancestors_loads_as_it_was_traine
     assert old.data.orient is False and old.model.field.densify.keep_ancestors is False
 
 
-def test_a_run_from_before_effects_became_components_still_loads(tmp_path):
-    """The sky's config class moved with the effects; a config.yml naming its old home loads."""
+def test_a_run_from_before_the_environment_was_renamed_still_loads(tmp_path):
+    """The environment was the "sky" (field ``sky``, class SkyConfig in model/ and then in model/effects/)
+    and the background a fixed colour; a config.yml of either time loads as what it trained."""
     import hico_plugin.presets  # noqa: F401  (the config classes a run's config.yml names)
-    from hico_plugin.model.effects.sky import SkyConfig
+    from hico_plugin.model.effects.environment import EnvironmentConfig
 
     path = tmp_path / "config.yml"
-    path.write_text("!dataclass:hico_plugin.model.hico.HiCoModelConfig\n"
-                    "sky: !dataclass:hico_plugin.model.sky.SkyConfig\n  hidden_dim: 16\n")
-    assert load_config(path).sky == SkyConfig(hidden_dim=16)
+    for home in ("hico_plugin.model.sky", "hico_plugin.model.effects.sky"):
+        path.write_text("!dataclass:hico_plugin.model.hico.HiCoModelConfig\n"
+                        f"sky: !dataclass:{home}.SkyConfig\n  hidden_dim: 16\n")
+        loaded = load_config(path)
+        assert loaded.environment == EnvironmentConfig(hidden_dim=16) and loaded.learn_background is False
 
 
 def test_parent_rule_is_an_enum_that_reads_and_writes_its_name(tmp_path):

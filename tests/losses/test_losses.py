@@ -237,10 +237,10 @@ def test_losses_config_is_the_registry_and_scales_its_own_schedules():
 def test_a_disabled_loss_is_not_built_and_a_foreign_config_is_named():
     losses = Losses.setup({**default_losses(), "dngc": DNGCLossConfig(enabled=False)})
     assert list(losses.components) == ["rgb"] and losses.metrics(10**6) == {}
-    with pytest.raises(HicoError, match=r"model\.losses\.sky: expected a loss config .*got SkyConfig"):
-        from hico_plugin.model.effects.sky import SkyConfig
+    with pytest.raises(HicoError, match=r"model\.losses\.environment: expected a loss config .*got EnvironmentConfig"):
+        from hico_plugin.model.effects.environment import EnvironmentConfig
 
-        Losses.setup({"sky": SkyConfig()})
+        Losses.setup({"environment": EnvironmentConfig()})
 
 
 def test_every_registered_loss_is_offered_switched_off(monkeypatch):

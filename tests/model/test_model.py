@@ -135,13 +135,14 @@ def test_masked_pixels_teach_nothing(tiny):
 
 def test_effects_are_built_applied_and_loaded_by_name(tiny):
     """The model names no effect: the chosen ones are built into ``effects`` and applied in
-    image-formation order (the sky behind the Gaussians, then the photo's exposure); a checkpoint from
-    before effects became components (``sky.*``, ``colour.*``) loads into them."""
-    model = _config(effects="sky=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
+    image-formation order (the environment behind the Gaussians, then the photo's exposure); checkpoints
+    from before effects became components (``sky.*``, ``colour.*``) and from before the environment was
+    renamed (``effects.sky.*``) load into them."""
+    model = _config(effects="environment=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
     order = list(model.active_effects)
-    assert set(order) == {"sky", "exposure", "lod"} and order.index("sky") < order.index("exposure")
-    assert set(model.effects) == {"sky", "exposure"}  # lod configures the field and builds nothing
-    assert {"sky", "exposure"} <= set(model.param_groups()) and {"sky", "exposure"} <= set(model.lr_schedules(10))
+    assert set(order) == {"environment", "exposure", "lod"} and order.index("environment") < order.index("exposure")
+    assert set(model.effects) == {"environment", "exposure"}  # lod configures the field and builds nothing
+    assert {"environment", "exposure"} <= set(model.param_groups()) <= set(model.lr_schedules(10))
     assert model.stats()["effect_parameters/exposure"] == 12 * len(tiny.train_indices)
     with torch.no_grad():
         model.effects["exposure"].matrix.mul_(2.0)
@@ -149,16 +150,41 @@ def test_effects_are_built_applied_and_loaded_by_name(tiny):
         out, gaussians = model.render(camera, ("rgb",))
         bare = model.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                               gaussians.colors, model.appearance_camera(camera), outputs=("rgb", "alpha"))
-        sky = model.effects["sky"](camera)
-    torch.testing.assert_close(out.rgb, 2.0 * (bare.rgb + (1 - bare.alpha) * sky))
+        environment = model.effects["environment"](camera)
+    torch.testing.assert_close(out.rgb, 2.0 * (bare.rgb + (1 - bare.alpha) * environment))
 
-    old_names = {key.replace("effects.sky.", "sky.").replace("effects.exposure.", "colour."): value
-                 for key, value in model.state_dict().items()}
-    assert "colour.matrix" in old_names and "sky.mlp.0.weight" in old_names
-    fresh = _config(effects="sky=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
-    fresh.load_state_dict(old_names)
-    torch.testing.assert_close(fresh.effects["exposure"].matrix, model.effects["exposure"].matrix)
-    torch.testing.assert_close(fresh.effects["sky"].mlp[0].weight, model.effects["sky"].mlp[0].weight)
+    for old in ("sky.", "effects.sky."):
+        old_names = {key.replace("effects.environment.", old).replace("effects.exposure.", "colour."): value
+                     for key, value in model.state_dict().items()}
+        assert "colour.matrix" in old_names and f"{old}mlp.0.weight" in old_names
+        fresh = _config(effects="sky=on,exposure=on,lod=on").setup(dataset=tiny, total_steps=10)
+        fresh.load_state_dict(old_names)
+        torch.testing.assert_close(fresh.effects["exposure"].matrix, model.effects["exposure"].matrix)
+        torch.testing.assert_close(fresh.effects["environment"].mlp[0].weight, model.effects["environment"].mlp[0].weight)
+
+
+def test_without_the_environment_the_background_is_a_learned_constant(tiny):
+    """Off, the environment leaves a constant behind the Gaussians that the optimizers train as the
+    group "background" (not black): fitted to renders composited over a known colour, it finds it."""
+    from hico_plugin.engine.optimizers import Optimizers
+
+    model = _config(effects="environment=off,exposure=off,lod=off").setup(dataset=tiny, total_steps=300)
+    assert model.param_groups()["background"] == [model.background] and model.background.requires_grad
+    torch.testing.assert_close(model.background.detach(), torch.zeros(3))  # starts at the configured colour
+    camera = tiny.cameras[int(tiny.train_indices[0])].scaled(0.5)
+    true = torch.tensor([0.2, 0.7, 0.45])
+    with torch.no_grad():
+        out, _ = model.render(camera, ("rgb", "alpha"))
+        target = out.rgb - (1 - out.alpha) * model.background + (1 - out.alpha) * true
+    optimizers = Optimizers(model.param_groups(), model.lr_schedules(300))
+    for step in range(150):  # the background's own group only: the Gaussians stay as they are
+        optimizers.zero_grad()
+        (model.render(camera, ("rgb",))[0].rgb - target).abs().mean().backward()
+        optimizers.set_lrs(step)
+        optimizers.optimizers["background"].step()
+    torch.testing.assert_close(model.background.detach(), true, atol=0.01, rtol=0)
+    fixed = _config(effects="environment=off,exposure=off,lod=off", learn_background=False).setup(dataset=tiny)
+    assert "background" not in fixed.param_groups() and not fixed.background.requires_grad
 
 
 def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losses(tiny):

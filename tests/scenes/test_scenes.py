@@ -232,7 +232,7 @@ def test_cli_generates_and_reports(tmp_path, capsys):
 
 
 def test_every_scene_is_registered_with_declared_effects():
-    assert {"tiny", "city-block", "pagoda"} <= set(SCENES.names())
+    assert {"tiny", "city-block", "pagoda", "room"} <= set(SCENES.names())
     assert scene_config("pagoda").effects.declared() == ["exposure", "sky", "sensor_noise"]
 
 

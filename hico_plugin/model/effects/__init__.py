@@ -6,11 +6,12 @@ import importlib
 import pkgutil
 
 from hico_plugin.model.effects.base import (
-    EFFECTS, Effect, EffectChoice, EffectInputs, EffectsReport, analyze_effects, choose_effects, parse_effects,
+    EFFECTS, RENAMED_EFFECTS, Effect, EffectChoice, EffectInputs, EffectsReport, analyze_effects, choose_effects,
+    parse_effects,
 )
 
 for _module in sorted(info.name for info in pkgutil.iter_modules(__path__) if info.name != "base"):
     importlib.import_module(f"{__name__}.{_module}")
 
-__all__ = ["EFFECTS", "Effect", "EffectChoice", "EffectInputs", "EffectsReport", "analyze_effects",
+__all__ = ["EFFECTS", "RENAMED_EFFECTS", "Effect", "EffectChoice", "EffectInputs", "EffectsReport", "analyze_effects",
            "choose_effects", "parse_effects"]

@@ -7,8 +7,8 @@ learning rates, where it acts on the rendered image, and what it costs. ``HiCoMo
 chosen effects and names none. ``--model.effects`` chooses::
 
     --model.effects auto                   # the default: exactly the effects the analysis finds
-    --model.effects auto,sky=off           # detect, but never learn a sky
-    --model.effects sky=on,exposure=on,lod=on   # no analysis when every effect is forced
+    --model.effects auto,environment=off   # detect, but never learn a directional background
+    --model.effects environment=on,exposure=on,lod=on   # no analysis when every effect is forced
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class Effect:
     """The analysis finding that decides ``auto``; an effect may answer a finding of its own by
     overriding ``detect``."""
     stage: int = 0
-    """Order of ``apply`` in image formation, lower first: what lies behind the Gaussians (sky) comes
+    """Order of ``apply`` in image formation, lower first: what lies behind the Gaussians (environment) comes
     before the camera's response to the whole image (exposure)."""
     replaces_background: bool = False
     """True when ``apply`` composites what lies behind the Gaussians (the rasterizer then renders
@@ -83,7 +83,7 @@ class Effect:
     def bake_colors(self, module: nn.Module | None, colors: Tensor, camera: "Camera") -> Tensor:
         """Per-Gaussian colours [N, 3] with the effect folded in for ``camera``'s photo, where that
         can be done (an export baking a reference photo's appearance). The default leaves them
-        unchanged: an effect behind the Gaussians, like the sky, is no part of them."""
+        unchanged: an effect behind the Gaussians, like the environment, is no part of them."""
         return colors
 
     def cost(self, module: nn.Module | None) -> dict[str, float]:
@@ -93,6 +93,10 @@ class Effect:
 
 
 EFFECTS: Registry[type[Effect]] = Registry("effect")
+
+# Effects renamed since runs were trained, old name -> today's: an old run's --model.effects
+# ("auto,sky=off") parses, and its checkpoint's module keys and optimizer group load under the new name.
+RENAMED_EFFECTS = {"sky": "environment"}
 
 # Findings measured and reported for every capture that no model component simulates.
 REPORTED_ONLY = ("noise", "distortion", "multi_distance")
@@ -156,12 +160,14 @@ def analyze_effects(dataset: Any, evidence: DatasetEvidence | None = None) -> Ef
 
 
 def parse_effects(spec: str) -> dict[str, str]:
-    """``"auto,sky=off"`` -> {effect: "auto" | "on" | "off"} for every registered effect."""
+    """``"auto,environment=off"`` -> {effect: "auto" | "on" | "off"} for every registered effect (a
+    renamed effect's old name is read as today's)."""
     choices = {name: "auto" for name in EFFECTS.names()}
     for token in (t.strip() for t in spec.split(",")):
         if token in ("", "auto"):
             continue
         name, sep, value = token.partition("=")
+        name = RENAMED_EFFECTS.get(name, name)
         if not sep or value not in ("on", "off", "auto"):
             raise HicoError(f"--model.effects: expected 'auto' or NAME=on|off|auto items, got {token!r}")
         if name not in EFFECTS:
