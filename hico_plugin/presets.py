@@ -15,6 +15,7 @@ import torch
 import tyro
 
 from hico_plugin.data.sources import DataSourceConfig
+from hico_plugin.engine.resolution import ResolutionSchedule
 from hico_plugin.engine.trainer import TrainerConfig
 from hico_plugin.losses import with_every_loss
 from hico_plugin.model.hico import HiCoModelConfig
@@ -61,10 +62,13 @@ def _paper() -> HiCoTrainerConfig:
 def _lite() -> HiCoTrainerConfig:
     """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 3,000-step schedule.
 
-    One change besides the length: anchors are adjusted every 750 reference steps (75 of this run's)
-    instead of every 100 (10 of this run's). Scaled down that far, each decision would average the
-    gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford."""
-    config = _with(_paper(), "hico-gs-lite", max_steps=3_000, eval_every=0, save_every=500)
+    Two changes besides the length. Anchors are adjusted every 750 reference steps (75 of this run's)
+    instead of every 100 (10 of this run's): scaled down that far, each decision would average the
+    gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. And photos larger
+    than 480 px train coarse to fine (``ResolutionSchedule``: half size at the start, full size from
+    half-way); smaller photos, such as the built-in scenes', train at full size throughout."""
+    config = _with(_paper(), "hico-gs-lite", max_steps=3_000, eval_every=0, save_every=500,
+                   resolution=ResolutionSchedule(start_scale=0.5))
     field = config.model.field
     field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750))
     return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field))
