@@ -197,8 +197,10 @@ class ProgressLines(TrainerCallback):
         elif done == 1 + self.timed_steps:
             per_step = (now - self._timing_start) / self.timed_steps
             remaining = per_step * (self.max_steps - step - 1)
+            scale = metrics.get("resolution_scale", 1.0)
+            coarse = f", images at {scale:.2f} of full size: later steps cost more" if scale < 1.0 else ""
             self._print(f"train: expected wall time {_duration(now - self._start + remaining)} "
-                        f"({per_step:.2f} s/step over steps 2-{done}; {_duration(remaining)} left)")
+                        f"({per_step:.2f} s/step over steps 2-{done}{coarse}; {_duration(remaining)} left)")
         if now - self._last >= self.every_seconds or step + 1 == self.max_steps:
             self._last = now
             elapsed = now - self._start

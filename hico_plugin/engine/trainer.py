@@ -364,7 +364,8 @@ class Trainer:
                     batch = rank_batch(self.dataset, self.train_indices, config.batch_size, config.seed, step,
                                        self.rank, self.world_size, self.device, getattr(self.model, "train_gt", None))
                     long_side = max(batch.cameras[0].width, batch.cameras[0].height)
-                    batch = downscale_batch(batch, config.resolution.scale(step, config.max_steps, long_side))
+                    scale = config.resolution.scale(step, config.max_steps, long_side)
+                    batch = downscale_batch(batch, scale)
                     metrics, finite = optimizer_step(self.model, self.optimizers, batch, step, self.device,
                                                      self.world_size)
                 except HicoError as err:  # a bad training image: keep what was trained so far
@@ -374,6 +375,8 @@ class Trainer:
             self.step += 1
             metrics.update({k: float(v) for k, v in self.model.stats().items()})
             metrics.update(timing)
+            if scale < 1.0:  # the coarse-to-fine schedule's image size of this step (metrics.jsonl)
+                metrics["resolution_scale"] = scale
             if finite:
                 nonfinite_streak = 0
             else:

@@ -59,5 +59,14 @@ def test_progress_lines_print_the_expected_wall_time_from_the_first_steps():
         lines.on_step_end(step, {"loss": 0.5})
     text = out.getvalue()
     # 10 s + 99 steps x 2 s = 3:28 expected, known after step 6
-    assert "expected wall time 3:28 (2.00 s/step over steps 2-6" in text
+    assert "expected wall time 3:28 (2.00 s/step over steps 2-6;" in text
     assert "step 100/100" in text and text.count("\nstep ") >= 6
+
+    # Timed on coarse images (the resolution schedule), the estimate says it is low.
+    coarse = io.StringIO()
+    lines = ProgressLines(max_steps=100, timed_steps=5, every_seconds=30.0, stream=coarse, clock=lambda: now[0])
+    lines.on_train_start(None, 0)
+    for step in range(10):
+        now[0] += 2.0
+        lines.on_step_end(step, {"loss": 0.5, "resolution_scale": 0.5})
+    assert "over steps 2-6, images at 0.50 of full size: later steps cost more;" in coarse.getvalue()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -105,3 +106,6 @@ def test_trainer_trains_coarse_first_and_evaluates_at_full_resolution(tmp_path):
     assert all(width == full for step, _, width in sizes if step >= 6)
     assert [width for _, _, width in sizes] == sorted(width for _, _, width in sizes)
     assert result.eval_results is not None and result.eval_results["psnr"] > 0
+    logged = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    scales = {row["step"]: row.get("resolution_scale", 1.0) for row in logged if "loss" in row}
+    assert scales[0] == 0.5 and scales[max(scales)] == 1.0
