@@ -2,7 +2,8 @@
 
 Output layout (what ``--data OUT`` trains on, nerfstudio's folder names)::
 
-    OUT/images/            undistorted pinhole images of the registered views
+    OUT/images/            pinhole images of the registered views (undistorted, or as taken when
+                           their camera's distortion moves no pixel by more than half a pixel)
     OUT/images_{2,4,8}/    the same, downscaled by 2, 4, 8
     OUT/sparse/0/          the pinhole COLMAP model
     OUT/colmap/            work files: input images, database.db, the distorted models
@@ -25,6 +26,7 @@ from hico_plugin.data import images as image_io
 from hico_plugin.errors import HicoError
 from hico_plugin.process.ingest import photo_info
 from hico_plugin.process.stages import Report, StageRunner, stage_key
+from hico_plugin.process.undistort import KEEP_BELOW_PX, describe, undistort
 
 Matcher = Literal["exhaustive", "sequential", "spatial"]
 Mapper = Literal["incremental", "global", "hierarchical"]
@@ -44,7 +46,8 @@ class SfmOptions:
     and merges: for city-scale sets)."""
     camera_model: str = "OPENCV"
     """COLMAP camera model estimated for the photos (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL,
-    OPENCV, OPENCV_FISHEYE, ...); images are undistorted to PINHOLE at the end."""
+    OPENCV, OPENCV_FISHEYE, ...); images are undistorted to PINHOLE at the end (kept as taken for a
+    camera whose distortion moves no pixel by more than half a pixel)."""
     camera_params: str = ""
     """Known intrinsics as COLMAP lists them for --camera-model (e.g. PINHOLE: "fx,fy,cx,cy"); empty =
     estimated, starting from the EXIF focal length (or 1.2 x the image size without EXIF)."""
@@ -93,10 +96,13 @@ def run_sfm(input_dir: Path, names: list[str], out: Path, options: SfmOptions, r
     key = stage_key(key, options.mapper, options.seed)
     mapped = runner.run("mapping", key, lambda report: _map(database, input_dir, work / "sparse", options, report))
     model_dir = work / "sparse" / str(mapped["model"])
-    runner.run("undistort", key, lambda report: _undistort(model_dir, input_dir, masks, out, report))
+    key = stage_key(key, KEEP_BELOW_PX)
+    undistorted = runner.run("undistort", key, lambda report: undistort(model_dir, input_dir, masks, out, report))
     key = stage_key(key, list(options.downscales))
     runner.run("downscale", key, lambda report: _downscale(out, options.downscales, report))
-    return _summary(database, names, pycolmap.Reconstruction(str(model_dir)), options)
+    summary = _summary(database, names, pycolmap.Reconstruction(str(model_dir)), options)
+    summary["undistortion"] = undistorted["cameras"]
+    return summary
 
 
 def camera_groups(input_dir: Path, names: list[str], mode: CameraMode) -> list[list[str]]:
@@ -212,59 +218,6 @@ def _map(database: Path, input_dir: Path, sparse: Path, options: SfmOptions, rep
     return {"model": int(best), "models": len(models)}
 
 
-def _undistort(model_dir: Path, input_dir: Path, masks: Path, out: Path, report: Report) -> None:
-    """Undistort the registered images to PINHOLE (COLMAP's image undistorter) into out/images and
-    out/sparse/0, and the photos' transparency masks alike into out/masks (via temporary folders, so a
-    crash leaves no half-written dataset behind)."""
-    staging = out / "colmap" / "undistorted"
-    for folder in (staging, staging.with_name("undistorted_masks")):
-        if folder.exists():
-            shutil.rmtree(folder)
-    reconstruction = pycolmap.Reconstruction(str(model_dir))
-    report(0, reconstruction.num_reg_images())
-    pycolmap.undistort_images(staging, model_dir, input_dir, output_type="COLMAP")
-    masks_out = _undistort_masks(reconstruction, model_dir, masks, staging.with_name("undistorted_masks"))
-    for name in ("images", "sparse", "masks"):
-        if (out / name).exists():
-            shutil.rmtree(out / name)
-    (staging / "images").rename(out / "images")
-    (out / "sparse").mkdir()
-    (staging / "sparse").rename(out / "sparse" / "0")
-    if masks_out is not None:
-        masks_out.rename(out / "masks")
-        shutil.rmtree(masks_out.parent)
-    shutil.rmtree(staging)
-    report(reconstruction.num_reg_images(), reconstruction.num_reg_images())
-
-
-def _undistort_masks(reconstruction: pycolmap.Reconstruction, model_dir: Path, masks: Path, staging: Path) -> Path | None:
-    """The masks (white = scene, nerfstudio's masks/<name>.png) of the undistorted images when any photo
-    had transparency (then every photo has one): each goes through the same undistortion as its image,
-    then back to black and white at half intensity."""
-    if not masks.is_dir():
-        return None
-    names = [image.name for image in reconstruction.images.values() if image.has_pose]
-    source = staging / "input"
-    for name in names:
-        mask = image_io.decode(masks / f"{name}.png", cv2.IMREAD_GRAYSCALE, "mask")
-        target = source / name
-        target.parent.mkdir(parents=True, exist_ok=True)
-        # Under the image's name and format (the undistorter reads by name); JPEG's loss on a black
-        # and white image is undone by the threshold below.
-        ok, encoded = cv2.imencode(Path(name).suffix.lower(), mask)
-        if not ok:
-            raise HicoError(f"{target}: mask cannot be encoded")
-        target.write_bytes(encoded.tobytes())
-    pycolmap.undistort_images(staging / "out", model_dir, source, output_type="COLMAP")
-    result = staging / "masks"
-    for name in names:
-        warped = image_io.decode(staging / "out" / "images" / name, cv2.IMREAD_GRAYSCALE, "undistorted mask")
-        target = result / Path(name).with_suffix(".png")
-        target.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(target), np.where(warped > 127, 255, 0).astype(np.uint8))
-    return result
-
-
 def _downscale(out: Path, factors: tuple[int, ...], report: Report) -> None:
     names = list_images(out / "images")
     for factor in factors:
@@ -329,6 +282,8 @@ def print_summary(summary: dict[str, Any], out: Path, timings: dict[str, float],
     if summary.get("rewritten"):
         echo(f"normalised {len(summary['rewritten'])} photo(s) on the way in (upright, 8-bit RGB; "
              f"{len(summary.get('masked', []))} with a transparency mask in masks/)")
+    for choice in summary["undistortion"]:
+        echo(describe(choice))
     echo(f"points3D   {summary['points3D']} (mean track length {summary['mean_track_length']:.2f}, "
          f"mean reprojection error {summary['mean_reprojection_error_px']:.3f} px)")
     stages = ", ".join(f"{name} {seconds:.1f} s" for name, seconds in timings.items())
