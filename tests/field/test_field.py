@@ -13,6 +13,7 @@ from hico_plugin.engine.protocol import LRSchedule
 from hico_plugin.errors import HicoError
 from hico_plugin.field import (
     AnchorField, ContextConfig, DecoderConfig, DensifyConfig, FieldConfig, OctreeBuildConfig, OctreeGrid)
+from hico_plugin.field.decoder import INITIAL_OPACITY
 from hico_plugin.field.lod import progressive_interval_ends
 from hico_plugin.field.octree import build_octree, distance_range
 from hico_plugin.model.hico import default_optimizers
@@ -208,6 +209,17 @@ def test_decoder_outputs_and_opacity_mask():
         if name != "clca":  # zero last layer: only the last layer itself gets a gradient at init
             assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in params), name
 
+
+
+def test_fresh_decoder_starts_children_near_3dgs_initial_opacity():
+    # Around opacity 0 a few early steps can push every child below 0, after which none is drawn
+    # and none gets a gradient again; a fresh decoder starts them at 3DGS's 0.1 instead.
+    field = make_field()
+    camera = ring_cameras()[2]
+    ids = field.select(camera, None)
+    opacity = field.decode(camera, ids).raw_opacities
+    assert abs(float(opacity.mean()) - INITIAL_OPACITY) < 0.05
+    assert float((opacity > 0).float().mean()) > 0.6
 
 
 def test_one_viewpoint_per_anchor_decodes_each_anchor_as_its_own_camera_would():
