@@ -61,7 +61,8 @@ def load_view(dataset: TrainDataset, index: int,
     (of the keys ``gt_keys``; None: every kind)."""
     image = as_float_image(dataset.image(index), f"dataset image {index}")
     gt = {}
-    wanted = _OPTIONAL_GT if gt_keys is None else {k: v for k, v in _OPTIONAL_GT.items() if k in set(gt_keys)}
+    keys = None if gt_keys is None else set(gt_keys)
+    wanted = {k: v for k, v in _OPTIONAL_GT.items() if keys is None or k in keys}
     for key, method in wanted.items():
         getter = getattr(dataset, method, None)
         value = getter(index) if getter is not None else None

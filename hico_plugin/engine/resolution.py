@@ -33,9 +33,9 @@ class ResolutionSchedule:
     full_at: float = 0.5
     """Fraction of max_steps by which the scale has risen (linearly in pixels per view) to 1."""
     min_long_side: int = 480
-    """Never train on images whose long side is under this many pixels: smaller photos start at
-    the scale that gives this size, and photos this small or smaller train at full size throughout
-    (there, the few pixels saved cost more accuracy than they save time)."""
+    """Never train on images whose long side is under this many pixels: a schedule that would go
+    lower starts at the scale that gives this size instead, and photos this small or smaller train
+    at full size throughout (there, the few pixels saved cost more accuracy than they save time)."""
 
     def validate(self) -> None:
         if not 0.0 < self.start_scale <= 1.0:
