@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.engine.data import load_view
+from hico_plugin.engine.memory import release_free_memory
 from hico_plugin.engine.protocol import TrainableModel, TrainDataset
 
 
@@ -56,12 +57,15 @@ def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], d
     eval_view did not report itself.
 
     fps = views / the summed ``render_seconds`` the model reports, else / the wall time of eval_view.
+    Freed heap memory goes back to the system before the first view and after each (``memory``), so
+    the evaluation's peak is not stacked on what training or the previous view left free.
     """
     module = model if isinstance(model, nn.Module) else None
     was_training = module.training if module is not None else False
     if module is not None:
         module.eval()
     per_view, wall_seconds = [], 0.0
+    release_free_memory()
     try:
         for index in indices:
             image, gt = load_view(dataset, index)
@@ -70,6 +74,7 @@ def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], d
             start = time.perf_counter()
             per_view.append(model.eval_view(camera, image.to(device), gt))
             wall_seconds += time.perf_counter() - start
+            release_free_memory()
     finally:
         if module is not None:
             module.train(was_training)

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from hico_plugin.engine.adam import Adam
 from hico_plugin.engine.protocol import LRSchedule
 from hico_plugin.errors import HicoError
 
@@ -45,8 +46,8 @@ class Optimizers:
         if missing:
             raise HicoError(f"model.lr_schedules: no schedule for parameter group(s) {', '.join(missing)}")
         self.schedules = {name: schedules[name] for name in param_groups}
-        self.optimizers: dict[str, torch.optim.Adam] = {
-            name: torch.optim.Adam(list(params), lr=self.schedules[name].lr(0), eps=ADAM_EPS)
+        self.optimizers: dict[str, Adam] = {
+            name: Adam(list(params), lr=self.schedules[name].lr(0), eps=ADAM_EPS)
             for name, params in param_groups.items()
         }
 

@@ -413,6 +413,7 @@ class Trainer:
             return None
         try:
             with self.lock:
+                self.optimizers.zero_grad()  # the last step's are spent (the next step starts with this): not held while evaluating
                 results = evaluate(self.model, self.dataset, self.test_indices, self.device)
             results["train_seconds"] = self.train_seconds
             results["step"] = self.step
