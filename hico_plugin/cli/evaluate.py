@@ -1,18 +1,23 @@
-"""``hico-eval --load-config RUN/config.yml [--checkpoint PATH] [--render-dir DIR]``.
+"""``hico-eval --load-config RUN/config.yml [--checkpoint PATH] [--render-dir DIR] [--data DIR]``.
 
 Evaluates the run on its test views (the engine's ``evaluate``, as at the end of training) and
 rewrites RUN/eval.json in nerfstudio's ns-eval layout, with surface metrics when a mesh exists and
 the scene has a ground-truth surface; ``--render-dir`` also saves, per test view, the render beside
-the ground truth and the depth and normal maps.
+the ground truth and the depth and normal maps. ``--data`` scores the model on another dataset of
+the same views in the same scene frame instead (say the same SfM poses with the photos as taken
+rather than resampled by undistortion, whose pinhole cameras differ a little), so two ways of
+preparing the photos are compared on one pixel grid.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,11 +26,10 @@ import tyro
 import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml may name)
 from hico_plugin.cli import run_cli
 from hico_plugin.cli.render import FrameRequest
-from hico_plugin.engine import evaluate, write_eval_json
-from hico_plugin.engine.checkpoints import load_checkpoint
+from hico_plugin.engine import LoadedRun, evaluate, load_run, write_eval_json
+from hico_plugin.engine.checkpoints import check_frame, dataset_frame, load_checkpoint
 from hico_plugin.engine.data import load_view
 from hico_plugin.errors import HicoError
-from hico_plugin.engine import LoadedRun, load_run
 from hico_plugin.export.frames import write_png
 from hico_plugin.mesh.evaluate import surface_results
 from hico_plugin.visualization.options import RenderOptions
@@ -50,6 +54,10 @@ class EvalArgs:
     mesh: Path | None = None
     """Mesh scored against the scene's ground-truth surface when it has one (P / R / F1 / chamfer);
     default RUN/exports/mesh.ply (hico-export ... mesh) when it exists."""
+    data: Path | None = None
+    """Score on the test views of this dataset instead of the run's own: the same views (image names)
+    in the same scene frame, with their own photos and cameras, read with the run's data settings;
+    results go to RUN/eval_on_<folder name>.json unless --output-path is given."""
 
 
 def checkpoint_info(path: Path) -> dict[str, Any]:
@@ -58,17 +66,37 @@ def checkpoint_info(path: Path) -> dict[str, Any]:
     return {key: payload[key] for key in ("step", "train_seconds") if key in payload}
 
 
+def other_dataset(run: LoadedRun, data: Path) -> Any:
+    """The run's data settings read on ``data``; a HicoError unless it holds the run's views (the
+    same image names, so a view keeps its index and appearance slot) in the checkpoint's scene frame."""
+    if not dataclasses.is_dataclass(run.config.data) or not hasattr(run.config.data, "data"):
+        raise HicoError(f"--data: the run's data config ({type(run.config.data).__name__}) reads no dataset folder")
+    dataset = dataclasses.replace(run.config.data, data=Path(data)).setup(announce=False)
+    ours, theirs = list(run.dataset.image_names), list(dataset.image_names)
+    if ours != theirs:
+        differ = sorted(set(ours) ^ set(theirs)) or ["(the same names in another order)"]
+        raise HicoError(f"--data {data}: holds other views than the run's dataset ({len(theirs)} images against "
+                        f"{len(ours)}; e.g. {differ[0]}); it must hold the same views under the same names")
+    try:
+        check_frame(load_checkpoint(run.checkpoint, mmap=True), dataset_frame(dataset), run.checkpoint)
+    except HicoError as err:
+        raise HicoError(f"--data {data}: {err}") from None
+    return dataset
+
+
 @torch.no_grad()
-def save_test_renders(run: LoadedRun, render_dir: Path) -> int:
-    """Write the test views' render | ground truth, depth and normal PNGs; returns the view count."""
+def save_test_renders(run: LoadedRun, render_dir: Path, dataset: Any = None) -> int:
+    """Write the test views' render | ground truth, depth and normal PNGs of ``dataset`` (default the
+    run's); returns the view count."""
+    dataset = run.dataset if dataset is None else dataset
     request = FrameRequest(outputs=("alpha", "depth", "normal", "rgb"))
     options = {name: RenderOptions(output=name) for name in ("rgb", "depth", "normal")}
-    indices = [int(i) for i in run.dataset.test_indices]
+    indices = [int(i) for i in dataset.test_indices]
     for index in indices:
-        images = run.model.render_for_display(run.dataset.cameras[index], request)
-        gt, _ = load_view(run.dataset, index)
+        images = run.model.render_for_display(dataset.cameras[index], request)
+        gt, _ = load_view(dataset, index)
         gt_picture = visualize({"rgb": gt}, options["rgb"])
-        stem = Path(run.dataset.image_names[index]).with_suffix("").as_posix().replace("/", "_")
+        stem = Path(dataset.image_names[index]).with_suffix("").as_posix().replace("/", "_")
         write_png(render_dir / f"{stem}_rgb_gt.png", np.concatenate([visualize(images, options["rgb"]), gt_picture], 1))
         for name in ("depth", "normal"):
             write_png(render_dir / f"{stem}_{name}.png", visualize(images, options[name]))
@@ -79,25 +107,28 @@ def main(args: EvalArgs) -> dict[str, Any]:
     if args.mesh is not None and not args.mesh.is_file():
         raise HicoError(f"--mesh: {args.mesh} is not a file (expected a PLY written by hico-export ... mesh)")
     run = load_run(args.load_config, args.checkpoint, args.device)
-    indices = [int(i) for i in run.dataset.test_indices]
+    dataset = run.dataset if args.data is None else other_dataset(run, args.data)
+    indices = [int(i) for i in dataset.test_indices]
     if not indices:
-        raise HicoError(f"{args.load_config}: the run's dataset has no test views to evaluate")
+        raise HicoError(f"{args.data or args.load_config}: the dataset has no test views to evaluate")
     device = run.model.background.device
     with torch.no_grad():  # untimed warm-up: the first render compiles the rasterizer's kernels
-        run.model.render(run.dataset.cameras[indices[0]], ("rgb",))
-    results = evaluate(run.model, run.dataset, indices, device)
+        run.model.render(dataset.cameras[indices[0]], ("rgb",))
+    results = evaluate(run.model, dataset, indices, device)
     results.update(checkpoint_info(run.checkpoint))
-    results.update(surface_results(run.dataset, args.mesh or run.run_dir / "exports" / "mesh.ply"))
-    output_path = args.output_path or run.run_dir / "eval.json"
+    results.update(surface_results(dataset, args.mesh or run.run_dir / "exports" / "mesh.ply"))
+    default_name = "eval.json" if args.data is None else f"eval_on_{Path(args.data).resolve().name}.json"
+    output_path = args.output_path or run.run_dir / default_name
     write_eval_json(output_path, run.config.experiment_name, run.config.method_name, str(run.checkpoint), results)
     for key, value in results.items():
         if key.endswith("_std") or not isinstance(value, (int, float)):
             continue  # None, and the model's choices (effects), which eval.json holds as they are
         std = results.get(f"{key}_std")
         print(f"{key:26s} {value:.4g}" + (f" ± {std:.3g}" if isinstance(std, float) else ""))
-    print(f"eval: {len(indices)} test views of {run.checkpoint} -> {output_path}")
+    scored = "" if args.data is None else f" (views of {args.data})"
+    print(f"eval: {len(indices)} test views{scored} of {run.checkpoint} -> {output_path}")
     if args.render_dir is not None:
-        count = save_test_renders(run, args.render_dir)
+        count = save_test_renders(run, args.render_dir, dataset)
         print(f"renders: {count} test views -> {args.render_dir}")
     return json.loads(output_path.read_text())
 

@@ -47,7 +47,7 @@ class SfmOptions:
     camera_model: str = "OPENCV"
     """COLMAP camera model estimated for the photos (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL,
     OPENCV, OPENCV_FISHEYE, ...); images are undistorted to PINHOLE at the end (kept as taken for a
-    camera whose distortion moves no pixel by more than half a pixel)."""
+    camera whose distortion moves no pixel by more than --keep-below-px)."""
     camera_params: str = ""
     """Known intrinsics as COLMAP lists them for --camera-model (e.g. PINHOLE: "fx,fy,cx,cy"); empty =
     estimated, starting from the EXIF focal length (or 1.2 x the image size without EXIF)."""
@@ -64,6 +64,10 @@ class SfmOptions:
     """Threads for COLMAP (-1: all cores)."""
     seed: int = 0
     """Random seed of the mapper (same inputs and seed -> same model)."""
+    keep_below_px: float = KEEP_BELOW_PX
+    """A camera whose fitted distortion moves no pixel by more than this many pixels keeps its photos as
+    taken (written as PINHOLE without the distortion); the others' photos are resampled to PINHOLE,
+    which blurs them a little. 0: resample every camera with any distortion."""
     downscales: tuple[int, ...] = (2, 4, 8)
     """Write images_N copies for these factors (nerfstudio's layout; --downscale N loads them)."""
 
@@ -83,6 +87,8 @@ def run_sfm(input_dir: Path, names: list[str], out: Path, options: SfmOptions, r
     if options.camera_model not in {model.name for model in pycolmap.CameraModelId.__members__.values()}:
         known = ", ".join(sorted(pycolmap.CameraModelId.__members__))
         raise HicoError(f"--camera-model: unknown COLMAP model {options.camera_model!r}; expected one of {known}")
+    if not options.keep_below_px >= 0:  # NaN too
+        raise HicoError(f"--keep-below-px: expected a distance in pixels >= 0, got {options.keep_below_px}")
     work = out / "colmap"
     database = work / "database.db"
     masks = input_dir.parent / "masks"  # where ingest_photos put the photos' transparency, if any
@@ -96,8 +102,9 @@ def run_sfm(input_dir: Path, names: list[str], out: Path, options: SfmOptions, r
     key = stage_key(key, options.mapper, options.seed)
     mapped = runner.run("mapping", key, lambda report: _map(database, input_dir, work / "sparse", options, report))
     model_dir = work / "sparse" / str(mapped["model"])
-    key = stage_key(key, KEEP_BELOW_PX)
-    undistorted = runner.run("undistort", key, lambda report: undistort(model_dir, input_dir, masks, out, report))
+    key = stage_key(key, options.keep_below_px)
+    undistorted = runner.run("undistort", key, lambda report: undistort(model_dir, input_dir, masks, out, report,
+                                                                        options.keep_below_px))
     key = stage_key(key, list(options.downscales))
     runner.run("downscale", key, lambda report: _downscale(out, options.downscales, report))
     summary = _summary(database, names, pycolmap.Reconstruction(str(model_dir)), options)

@@ -2,10 +2,12 @@
 
 Resampling blurs: the bilinear lookup of an image undistorter is a low-pass filter (Parker, Kenyon &
 Troxel, "Comparison of interpolating methods for image resampling", IEEE TMI 1983). A camera whose
-distortion moves no pixel by more than ``KEEP_BELOW_PX`` therefore keeps its photos as the ingest
-stage wrote them and is written as PINHOLE with its own focal lengths and principal point (the
-dropped distortion is below what a pixel resolves); the other cameras go through COLMAP's image
-undistorter. Everything is written to temporary folders first, so a crash leaves no half-written
+distortion moves no pixel by more than ``keep_below_px`` (``KEEP_BELOW_PX``, half a pixel, unless
+asked otherwise) therefore keeps its photos as the ingest stage wrote them and is written as PINHOLE
+with its own focal lengths and principal point (the dropped distortion is below what a pixel
+resolves); the other cameras go through COLMAP's image undistorter. ``keep_below_px`` 0 resamples
+every camera with any distortion, so the cost of resampling can be measured on the same
+reconstruction. Everything is written to temporary folders first, so a crash leaves no half-written
 dataset behind.
 """
 
@@ -27,15 +29,16 @@ from hico_plugin.process.stages import Report
 KEEP_BELOW_PX = 0.5
 
 
-def camera_choices(reconstruction: pycolmap.Reconstruction) -> list[dict[str, Any]]:
+def camera_choices(reconstruction: pycolmap.Reconstruction,
+                   keep_below_px: float = KEEP_BELOW_PX) -> list[dict[str, Any]]:
     """Per camera (by id): model, size, the largest pixel displacement of its distortion and whether
-    its photos are kept as taken."""
+    its photos are kept as taken (a displacement of at most ``keep_below_px``)."""
     choices = []
     for camera_id in sorted(reconstruction.cameras):
         camera = reconstruction.cameras[camera_id]
         moved = max_distortion_px(camera)
         choices.append({"camera_id": camera_id, "model": camera.model.name, "width": camera.width,
-                        "height": camera.height, "max_displacement_px": moved, "kept": moved <= KEEP_BELOW_PX})
+                        "height": camera.height, "max_displacement_px": moved, "kept": moved <= keep_below_px})
     return choices
 
 
@@ -47,9 +50,11 @@ def describe(choice: dict[str, Any]) -> str:
             f"moves pixels by at most {choice['max_displacement_px']:.2f} px; {done}")
 
 
-def undistort(model_dir: Path, input_dir: Path, masks: Path, out: Path, report: Report) -> dict[str, Any]:
+def undistort(model_dir: Path, input_dir: Path, masks: Path, out: Path, report: Report,
+              keep_below_px: float = KEEP_BELOW_PX) -> dict[str, Any]:
     """The registered photos of ``model_dir`` (read from ``input_dir``) and their masks (``masks``, if
-    any photo had transparency) as a pinhole dataset in ``out``; returns {"cameras": camera_choices}."""
+    any photo had transparency) as a pinhole dataset in ``out``, photos of cameras whose distortion
+    moves no pixel by more than ``keep_below_px`` kept as taken; returns {"cameras": camera_choices}."""
     staging = out / "colmap" / "undistorted"
     masks_staging = staging.with_name("undistorted_masks")
     for folder in (staging, masks_staging):
@@ -57,7 +62,7 @@ def undistort(model_dir: Path, input_dir: Path, masks: Path, out: Path, report: 
             shutil.rmtree(folder)
     staging.mkdir(parents=True)
     model = pycolmap.Reconstruction(str(model_dir))
-    choices = camera_choices(model)
+    choices = camera_choices(model, keep_below_px)
     kept = {choice["camera_id"] for choice in choices if choice["kept"]}
     images = [image for image in model.images.values() if image.has_pose]
     remapped = [image.name for image in images if image.camera_id not in kept]

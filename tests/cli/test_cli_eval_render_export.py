@@ -8,22 +8,23 @@ import shutil
 
 import cv2
 import numpy as np
+import pycolmap
 import pytest
 import torch
 
+from hico_plugin.cameras import Camera, Cameras
 from hico_plugin.cli import evaluate as eval_cli
 from hico_plugin.cli import export as export_cli
 from hico_plugin.cli import render as render_cli
-from hico_plugin.engine import load_config, save_config
-from hico_plugin.engine import load_run
-from hico_plugin.cameras import Camera, Cameras
+from hico_plugin.engine import load_config, load_run, save_config
 from hico_plugin.export import read_ply
 from hico_plugin.export.camera_path_file import write_camera_path
-from hico_plugin.field.field import FieldConfig
 from hico_plugin.export.camera_paths import quat_to_rotmat, rotmat_to_quat
 from hico_plugin.export.gaussians import INRIA_FIELDS, MIN_OPACITY, SH_C0
+from hico_plugin.field.field import FieldConfig
 from hico_plugin.mesh.mesh import TriangleMesh
 from hico_plugin.mesh.mesh import write_ply as write_mesh
+from hico_plugin.metrics.image import psnr
 
 
 @pytest.fixture
@@ -49,6 +50,56 @@ def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsy
     side_by_side = cv2.imread(str(tmp_path / "view_0000_rgb_gt.png"))
     assert side_by_side.shape == (48, 128, 3)
     assert (tmp_path / "view_0008_depth.png").is_file() and (tmp_path / "view_0008_normal.png").is_file()
+
+
+def _copy_of_the_views(source, out, change_model=None):
+    """A copy of the COLMAP dataset ``source`` (images and sparse/0 only), the model changed in place
+    by ``change_model(reconstruction, out)`` when given."""
+    shutil.copytree(source / "images", out / "images")
+    model = pycolmap.Reconstruction(str(source / "sparse" / "0"))
+    if change_model is not None:
+        change_model(model, out)
+    (out / "sparse" / "0").mkdir(parents=True)
+    model.write_binary(str(out / "sparse" / "0"))
+    return out
+
+
+def test_eval_data_scores_the_same_views_of_another_dataset(run_dir, tmp_path, capsys):
+    """--data: the run's model on another dataset of its views in its frame (here the same cameras
+    with the photos darkened); a dataset in another frame or of other views is refused with one line."""
+    run = load_run(run_dir / "config.yml")
+    darker = _copy_of_the_views(run.dataset.data_dir, tmp_path / "darker")
+    for path in (darker / "images").iterdir():
+        cv2.imwrite(str(path), cv2.imread(str(path)) // 2)
+    document = eval_cli.main(eval_cli.parse(["--load-config", str(run_dir / "config.yml"), "--data", str(darker)]))
+    assert json.loads((run_dir / "eval_on_darker.json").read_text()) == document
+    assert "2 test views (views of" in capsys.readouterr().out
+    expected = []
+    with torch.no_grad():
+        for index in run.dataset.test_indices.tolist():
+            rendered, _ = run.model.render(run.dataset.cameras[index], ("rgb",))
+            photo = cv2.imread(str(darker / "images" / run.dataset.image_names[index]))[..., ::-1]
+            expected.append(float(psnr(rendered.rgb.clamp(0, 1), torch.from_numpy(photo.copy()).float() / 255)))
+    assert document["results"]["psnr"] == pytest.approx(np.mean(expected), abs=1e-4)
+    own = eval_cli.main(eval_cli.parse(["--load-config", str(run_dir / "config.yml"),
+                                        "--output-path", str(tmp_path / "own.json")]))
+    assert abs(document["results"]["psnr"] - own["results"]["psnr"]) > 1.0  # the darkened photos were scored
+
+    def scaled(model, out):
+        model.transform(pycolmap.Sim3d(2.0, pycolmap.Rotation3d(), np.zeros(3)))
+
+    def renamed(model, out):
+        image = model.images[min(model.images)]
+        (out / "images" / image.name).rename(out / "images" / "other.png")
+        image.name = "other.png"
+
+    for change, message in ((scaled, "another scene frame"), (renamed, "other views than the run's dataset")):
+        other = _copy_of_the_views(run.dataset.data_dir, tmp_path / change.__name__, change)
+        with pytest.raises(SystemExit) as exit_info:
+            eval_cli.entrypoint(["--load-config", str(run_dir / "config.yml"), "--data", str(other)])
+        assert exit_info.value.code != 0
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: --data {other}: ") and message in lines[0], lines
 
 
 def test_eval_scores_a_mesh_against_the_ground_truth_surface(run_dir, tmp_path, capsys):

@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-
 from PIL import Image
 
 from hico_plugin.cli.process import main as process_main
@@ -79,6 +78,20 @@ def test_images_register_write_the_dataset_and_resume(photos, tmp_path):
     again = process_main(["images", str(folder), "--output", str(out), *FAST])
     assert set(again["reused_stages"]) == {"ingest", "features", "matching", "mapping", "undistort", "downscale"}
     assert _centres(out).keys() == recovered.keys()
+    # Here the fitted distortion moves no pixel by half a pixel: the photos are kept as taken. A copy
+    # run again with --keep-below-px 0 reuses the reconstruction and resamples them.
+    assert [choice["kept"] for choice in summary["undistortion"]] == [True]
+    assert all((out / "images" / name).read_bytes() == (folder / name).read_bytes() for name in names)
+    resampled = tmp_path / "resampled"
+    shutil.copytree(out, resampled)
+    forced = process_main(["images", str(folder), "--output", str(resampled), *FAST, "--keep-below-px", "0"])
+    assert set(forced["reused_stages"]) == {"ingest", "features", "matching", "mapping"}
+    assert [choice["kept"] for choice in forced["undistortion"]] == [False]
+    kept_model, resampled_model = (pycolmap.Reconstruction(str(d / "sparse" / "0")) for d in (out, resampled))
+    for image in kept_model.images.values():
+        assert np.array_equal(resampled_model.images[image.image_id].cam_from_world().matrix(),
+                              image.cam_from_world().matrix())
+        assert (resampled / "images" / image.name).read_bytes() != (folder / image.name).read_bytes()
 
 
 def _exif(orientation: int = 1, make: str = "", model: str = "") -> bytes:
@@ -192,6 +205,8 @@ def test_too_few_photos_is_one_clear_error(tmp_path):
         cv2.imwrite(str(tmp_path / "photos" / f"{i}.png"), blank)
     with pytest.raises(HicoError, match=r"registered no images|only \d+ of 4 images registered"):
         process_main(["images", str(tmp_path / "photos"), "--output", str(tmp_path / "out"), *FAST])
+    with pytest.raises(HicoError, match=r"--keep-below-px: expected a distance in pixels >= 0, got -1"):
+        process_main(["images", str(tmp_path / "photos"), "--output", str(tmp_path / "o3"), "--keep-below-px", "-1"])
     with pytest.raises(HicoError, match="found 0 photos"):
         process_main(["images", str(tmp_path / "out" / "colmap" / "sparse"), "--output", str(tmp_path / "o2")])
 

@@ -89,3 +89,14 @@ def test_all_near_pinhole_runs_no_undistorter(tmp_path):
     for image in written.images.values():
         assert (out / "images" / image.name).read_bytes() == (photos / image.name).read_bytes(), image.name
     assert not (out / "masks").exists()
+
+
+def test_keep_below_zero_resamples_every_distorted_camera(tmp_path):
+    """keep_below_px 0 (how the cost of resampling is measured): even a camera whose distortion moves
+    pixels by 0.05 px has its photos undistorted."""
+    model_dir, photos, masks, out = _twin(tmp_path, k1s=(NEAR_PINHOLE_K1, -NEAR_PINHOLE_K1), masked=False)
+    summary = undistort(model_dir, photos, masks, out, lambda done, total: None, keep_below_px=0.0)
+    assert [choice["kept"] for choice in summary["cameras"]] == [False, False]
+    assert describe(summary["cameras"][0]).endswith("at most 0.05 px; photos undistorted to PINHOLE")
+    for image in pycolmap.Reconstruction(str(out / "sparse" / "0")).images.values():
+        assert (out / "images" / image.name).read_bytes() != (photos / image.name).read_bytes(), image.name
