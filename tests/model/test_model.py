@@ -217,6 +217,7 @@ def test_a_fresh_model_without_the_environment_pulls_on_no_opacity_all_alike(tin
         model.background.zero_()  # the old start, black
     black = [pull(view) for view in views]
     assert all(abs(n) < 0.1 * abs(b) for n, b in zip(neutral, black)), (neutral, black)
+    assert NEUTRAL_BACKGROUND == 0.5  # sigmoid(0), the fresh colour MLP's output
 
 
 def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losses(tiny):
