@@ -62,26 +62,6 @@ def default_optimizers() -> dict[str, ParamGroupOptimizerConfig]:
     return {**field_groups, **effect_groups}
 
 
-NEUTRAL_BACKGROUND = 0.5
-"""Start of the learned constant background: sigmoid(0), the colour a fresh decoder gives every Gaussian
-(its colour MLP's output starts near 0), and about where the environment MLP starts too.
-
-Why not black: the loss pulls on a Gaussian's opacity through T (c - c_behind), the derivative of alpha
-compositing (3DGS's backward pass, Kerbl et al. 2023). A fresh decoder gives every anchor the same
-features (zero, as Scaffold-GS starts them), so all children are alike: opacity 0.1, colour ~0.5. Over
-black every child sees the same c - c_behind = +0.5, so where the photo is darker than the grey fog
-all of them are pulled towards 0 together, and the shared opacity and CLCA MLPs and the alike
-features turn that into one coherent Adam step a view, as large as the learning rates whatever the
-pull's strength. A child at opacity <= 0 is not drawn and
-gets no gradient, so a fall of all of them is final: pagoda, environment off, seed 1, every opacity
-fell 0.01-0.04 a step, the drawn Gaussians 26k -> 810 by step 10 -> 9 at step 200 (13.1 dB
-colour-corrected). Over mid-grey c - c_behind starts near 0 for every child (the first view's summed
-pull 0.012 against 0.30 over black); what drift remains is that of the environment-on runs, which keep
-drawing thousands of Gaussians (same run: 6.6k drawn at step 10, 8.6k at step 200, 21.2 dB), and the
-constant moves on to the photos' colour at its own rate."""
-
-BACKGROUND_STARTS = ("neutral", "configured")
-
 ANCHORS_PER_SEED_POINT = 32
 """Anchors a run may end with per seed point, for the checkpoint size estimate (``checkpoint_bytes``)."""
 
@@ -105,18 +85,13 @@ class HiCoModelConfig(InstantiateConfig):
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Colour composited behind the Gaussians when the environment effect is off (where learned, its
-    start only with background_start "configured")."""
-    background_start: str = "neutral"
-    """Where the learned constant starts: "neutral" = mid-grey, the colour a fresh decoder gives every
-    Gaussian (``NEUTRAL_BACKGROUND``), or "configured" = ``background`` (black unless set; the rule
-    before 2026-11-26, which let pagoda's environment-off runs lose every Gaussian in ten steps)."""
+    """Colour composited behind the Gaussians when the environment effect is off (where learned, its start)."""
     learn_background: bool = True
     """Learn that colour (parameter group "background"): with the environment off, the best constant
     behind the Gaussians, not black. Splatfacto trains over a random colour instead so that the
     Gaussians cannot lean on it (nerfstudio's splatfacto.py, _get_background_color); a learned
     constant also fits a plain backdrop the Gaussians do not reach (the room, environment off, 300
-    steps, the constant started at black: colour-corrected PSNR 28.19 dB against 22.30 over black)."""
+    steps: colour-corrected PSNR 28.19 dB against 22.30 over black)."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
@@ -129,9 +104,6 @@ class HiCoModelConfig(InstantiateConfig):
     def validate(self) -> None:
         """A HicoError for a bad --model.effects, before the dataset is read (the trainer's validate)."""
         parse_effects(self.effects)
-        if self.background_start not in BACKGROUND_STARTS:
-            raise HicoError(f"model.background_start: expected one of {', '.join(BACKGROUND_STARTS)}, "
-                            f"got '{self.background_start}'")
 
     def checkpoint_bytes(self, num_points: int) -> int:
         """A generous size of a training checkpoint of this model grown from ``num_points`` seed points,
@@ -159,7 +131,6 @@ class HiCoModel(nn.Module):
 
     def __init__(self, config: HiCoModelConfig, dataset: Any, total_steps: int | None = None):
         super().__init__()
-        config.validate()
         self.config = config
         train_ids = torch.as_tensor(dataset.train_indices, dtype=torch.long)
         if len(train_ids) == 0:
@@ -188,8 +159,6 @@ class HiCoModel(nn.Module):
         self.spatial_lr_scale = float(dataset.cameras_extent())
         background = torch.tensor(config.background, dtype=torch.float32)
         if config.learn_background and not self.composites_behind():
-            if config.background_start == "neutral":
-                background = torch.full((3,), NEUTRAL_BACKGROUND)
             self.background = nn.Parameter(background)
         else:  # unused behind a composited environment, or kept as configured
             self.register_buffer("background", background)

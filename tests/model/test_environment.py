@@ -65,8 +65,7 @@ def test_model_composites_the_environment_only_where_alpha_leaves_room():
     assert "background" not in groups  # the environment replaces the constant background
 
     without = HiCoModelConfig(renderer=RendererConfig(use_compile=False), eval_lpips="none",
-                              effects="auto,sky=off", background=(1.0, 0.0, 0.0),
-                              background_start="configured").setup(dataset=dataset)
+                              effects="auto,sky=off", background=(1.0, 0.0, 0.0)).setup(dataset=dataset)
     assert without.effect_choices["environment"].on is False  # "sky", the old name, still switches it
     assert "environment" not in without.effects and "environment" not in without.param_groups()
     with torch.no_grad():

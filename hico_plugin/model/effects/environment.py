@@ -9,8 +9,7 @@ stays smooth: ``rgb = rgb_gaussians + (1 - alpha) * environment(direction)``. It
 background and an approximation for near surfaces that still pays: on instant-ngp's fox (rose paper
 behind the head, 16 % of the photos uncovered) the colour-corrected test PSNR was 28.01 dB with it
 against 26.04 dB over constant black; on the built-in room (32 views at 160x120, 300 steps, seed 42)
-29.02 dB with it, 28.19 over the learned constant background that replaces it when off (then started at
-black; it starts at mid-grey since), 22.30 over black.
+29.02 dB with it, 28.19 over the learned constant background that replaces it when off, 22.30 over black.
 """
 
 from __future__ import annotations
