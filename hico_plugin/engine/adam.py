@@ -58,14 +58,10 @@ class Adam:
             denom = (exp_avg_sq.sqrt() / (1 - beta2**step) ** 0.5).add_(eps)
             param.addcdiv_(exp_avg, denom, value=-step_size)
 
-    def zero_grad(self, set_to_none: bool = True) -> None:
+    def zero_grad(self) -> None:
+        """Drop the gradients (torch's default, ``set_to_none=True``): the next backward allocates them."""
         for param in self.param_groups[0]["params"]:
-            if param.grad is None:
-                continue
-            if set_to_none:
-                param.grad = None
-            else:
-                param.grad.detach_().zero_()
+            param.grad = None
 
     def state_dict(self) -> dict[str, Any]:
         """torch.optim's layout: state by the parameter's position, the group with positions."""

@@ -78,7 +78,7 @@ class Optimizers:
 
     def zero_grad(self) -> None:
         for optimizer in self.optimizers.values():
-            optimizer.zero_grad(set_to_none=True)
+            optimizer.zero_grad()
 
     def resize_group(
         self, name: str, new_params: list[nn.Parameter], kept_rows: Tensor, num_new: int

@@ -21,7 +21,7 @@ def _train(optimizer, params: list[nn.Parameter], steps: range) -> None:
     """Steps with seeded gradients, a changing lr and the last parameter without a gradient until step 3."""
     for step in steps:
         generator = torch.Generator().manual_seed(100 + step)
-        optimizer.zero_grad(set_to_none=True)
+        optimizer.zero_grad()
         for i, param in enumerate(params):
             if i < 2 or step >= 3:
                 param.grad = torch.randn(param.shape, generator=generator)
