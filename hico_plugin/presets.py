@@ -62,16 +62,20 @@ def _paper() -> HiCoTrainerConfig:
 def _lite() -> HiCoTrainerConfig:
     """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 3,000-step schedule.
 
-    Two changes besides the length. Anchors are adjusted every 750 reference steps (75 of this run's)
+    Three changes besides the length. Anchors are adjusted every 750 reference steps (75 of this run's)
     instead of every 100 (10 of this run's): scaled down that far, each decision would average the
     gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. And photos larger
     than 480 px train coarse to fine (``ResolutionSchedule``: half size at the start, full size from
-    half-way); smaller photos, such as the built-in scenes', train at full size throughout."""
+    half-way); smaller photos, such as the built-in scenes', train at full size throughout. And a run
+    shorter than 1,000 steps trains one octree level (``lod_min_steps``): at 200 steps one level scored
+    0.7-1.6 dB higher than the levels the camera distances call for on pagoda, room and city-block
+    (colour-corrected PSNR, seeds 0-2); at 1,000 steps the two tied on pagoda (30.05 +- 0.08 and
+    29.87 +- 0.22), and at 3,000 the levels won by 0.75 dB on city-block."""
     config = _with(_paper(), "hico-gs-lite", max_steps=3_000, eval_every=0, save_every=500,
                    resolution=ResolutionSchedule(start_scale=0.5))
     field = config.model.field
     field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750))
-    return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field))
+    return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field, lod_min_steps=1_000))
 
 
 PRESETS: dict[str, tuple[str, HiCoTrainerConfig]] = {

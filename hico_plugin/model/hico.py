@@ -82,6 +82,10 @@ class HiCoModelConfig(InstantiateConfig):
     (environment = a directional background where no point explains the photos, exposure = per-image colour
     transform, lod = octree levels from the distance spread); NAME=on|off forces one, e.g.
     "auto,environment=off" or "environment=on,exposure=off,lod=on"."""
+    lod_min_steps: int = 0
+    """``auto`` turns the lod effect on only in runs of at least this many steps (0: whenever the camera
+    distances call for levels, as the paper's octree). Each level's anchors train on the views at its
+    distance only, so a short run trains one flat level better; hico-gs-lite sets it from measurements."""
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -137,7 +141,7 @@ class HiCoModel(nn.Module):
             raise HicoError("dataset: the training split is empty")
         train_cameras = dataset.cameras
         self.train_slot = {int(i): slot for slot, i in enumerate(train_ids.tolist())}
-        self.effect_choices, self.effects_report = choose_effects(config.effects, dataset)
+        self.effect_choices, self.effects_report = choose_effects(config.effects, dataset, total_steps, config)
         for choice in self.effect_choices.values():
             print(f"effect  {choice.line()}")
         effects = {name: EFFECTS.get(name)() for name in self.effect_choices}

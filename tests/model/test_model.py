@@ -207,3 +207,27 @@ def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losse
     assert scaled.field.grid.num_levels == levels
     assert analyze_effects(tiny).effects["lod"].figures["levels"] == levels
     assert any(f"-> {levels} octree levels" in line for line in summarize(tiny))
+
+
+def test_auto_skips_octree_levels_in_runs_shorter_than_lod_min_steps(tiny):
+    from hico_plugin.field.octree import level_count
+
+    levels = level_count(*tiny.camera_distance_range())
+    assert levels >= 2  # the distances call for levels, so the budget alone decides below
+    short = _config(lod_min_steps=1000).setup(dataset=tiny, total_steps=999)
+    assert not short.effect_choices["lod"].on and short.field.grid.num_levels == 1
+    assert "a run of 999 steps is too short" in short.effect_choices["lod"].reason
+    long = _config(lod_min_steps=1000).setup(dataset=tiny, total_steps=1000)
+    assert long.effect_choices["lod"].on and long.field.grid.num_levels == levels
+    paper = _config().setup(dataset=tiny, total_steps=10)  # default 0: levels whenever the data calls for them
+    assert paper.effect_choices["lod"].on and paper.field.grid.num_levels == levels
+    forced = _config(lod_min_steps=1000, effects="auto,lod=on").setup(dataset=tiny, total_steps=10)
+    assert forced.field.grid.num_levels == levels
+
+
+def test_the_ablation_presets_keep_octree_levels_at_every_budget():
+    from hico_plugin.bench.matrix import ABLATION_PRESETS
+    from hico_plugin.presets import all_presets
+
+    # the paper's ablations compare aggregators across levels; hico-bench runs them for 100-400 steps
+    assert all(all_presets()[name][1].model.lod_min_steps == 0 for name in ABLATION_PRESETS)

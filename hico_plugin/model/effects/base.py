@@ -59,6 +59,11 @@ class Effect:
         raise HicoError(f"effect answering '{self.finding or type(self).__name__}': no measurement of it; "
                         f"the effect must define detect()")
 
+    def auto_choice(self, name: str, finding: EffectFinding, total_steps: int | None, model_config: Any) -> "EffectChoice":
+        """What ``auto`` decides from the finding for a run of ``total_steps`` (None: unknown); the
+        default follows the finding alone."""
+        return EffectChoice(name, finding.present, finding.reason)
+
     def configure_field(self, field_config: Any, on: bool) -> Any:
         """The anchor field's config with this effect on or off (called for every registered effect)."""
         return field_config
@@ -176,9 +181,10 @@ def parse_effects(spec: str) -> dict[str, str]:
     return choices
 
 
-def choose_effects(spec: str, dataset: Any) -> tuple[dict[str, EffectChoice], EffectsReport | None]:
-    """Resolve ``spec`` against ``dataset``: (choice per effect, the analysis report or None when
-    every effect was forced)."""
+def choose_effects(spec: str, dataset: Any, total_steps: int | None = None,
+                   model_config: Any = None) -> tuple[dict[str, EffectChoice], EffectsReport | None]:
+    """Resolve ``spec`` against ``dataset`` for a run of ``total_steps``: (choice per effect, the
+    analysis report or None when every effect was forced)."""
     choices = parse_effects(spec)
     report = None
     if any(value == "auto" for value in choices.values()):
@@ -186,8 +192,8 @@ def choose_effects(spec: str, dataset: Any) -> tuple[dict[str, EffectChoice], Ef
     out = {}
     for name, value in choices.items():
         if value == "auto":
-            found = report.effects[EFFECTS.get(name)().finding]
-            out[name] = EffectChoice(name, found.present, found.reason)
+            effect = EFFECTS.get(name)()
+            out[name] = effect.auto_choice(name, report.effects[effect.finding], total_steps, model_config)
         else:
             out[name] = EffectChoice(name, value == "on", "forced by --model.effects")
     return out, report

@@ -7,7 +7,7 @@ from typing import Any
 
 from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
 from hico_plugin.analysis.view_distances import lod_finding
-from hico_plugin.model.effects.base import EFFECTS, Effect
+from hico_plugin.model.effects.base import EFFECTS, Effect, EffectChoice
 
 
 @EFFECTS.register("lod")
@@ -19,6 +19,15 @@ class LevelOfDetailEffect(Effect):
 
     def detect(self, evidence: DatasetEvidence) -> EffectFinding:
         return lod_finding(evidence)
+
+    def auto_choice(self, name: str, finding: EffectFinding, total_steps: int | None, model_config: Any) -> EffectChoice:
+        # Each level's anchors see only the views at its distance, so levels split the run's steps
+        # between them; a run shorter than lod_min_steps trains one flat level better.
+        minimum = getattr(model_config, "lod_min_steps", 0)
+        if finding.present and total_steps is not None and total_steps < minimum:
+            return EffectChoice(name, False, f"{finding.reason}, but a run of {total_steps} steps is too short to "
+                                             f"train them (levels from {minimum} steps: --model.lod-min-steps)")
+        return EffectChoice(name, finding.present, finding.reason)
 
     def configure_field(self, field_config: Any, on: bool) -> Any:
         octree = field_config.octree
