@@ -116,7 +116,7 @@ def test_viewer_lod_controls(tiny):
 def test_masked_pixels_teach_nothing(tiny):
     """A photo's mask (white = scene; transparency from hico-process) leaves the pixels outside it out of
     the photometric loss: no loss and no gradient from them."""
-    model = _config().setup(dataset=tiny, total_steps=300)
+    model = _config(random_background=0.0).setup(dataset=tiny, total_steps=300)  # the same render each time
     batch = _batch(tiny)
     height, width = batch.images.shape[1:3]
     half = torch.zeros(1, height, width, 1, dtype=torch.bool)
@@ -231,3 +231,34 @@ def test_the_ablation_presets_keep_octree_levels_at_every_budget():
 
     # the paper's ablations compare aggregators across levels; hico-bench runs them for 100-400 steps
     assert all(all_presets()[name][1].model.lod_min_steps == 0 for name in ABLATION_PRESETS)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_random_background_start_keeps_a_fresh_model_from_fading_out(seed):
+    """Environment off on pagoda: over one constant colour the first steps pull every fresh Gaussian's
+    opacity down together (with random_background=0 these seeds keep ~1 % of the Gaussians drawn after
+    20 steps); over a random colour a step most stay."""
+    from hico_plugin.engine.optimizers import Optimizers
+
+    pagoda = DataSourceConfig(scene="pagoda", downscale=2).setup()
+    torch.manual_seed(seed)
+    model = _config(effects="environment=off,exposure=off,lod=on").setup(dataset=pagoda, total_steps=200)
+    assert model.random_background_until == 20
+    probe = pagoda.cameras[int(pagoda.test_indices[0])]
+
+    def drawn() -> int:
+        with torch.no_grad():
+            return int((model.render(probe, ("rgb",))[1].opacities > 0.01).sum())
+
+    start = drawn()
+    optimizers = Optimizers(model.param_groups(), model.lr_schedules(200))
+    order = torch.randint(len(pagoda.train_indices), (20,), generator=torch.Generator().manual_seed(seed))
+    for step, position in enumerate(order.tolist()):
+        output = model.train_step(_batch(pagoda, position), step)
+        optimizers.zero_grad()
+        output.loss.backward()
+        optimizers.step(step)
+    assert drawn() > 0.5 * start
+    with torch.no_grad():
+        assert not torch.equal(model.background_behind(0), model.background_behind(0))
+        assert model.background_behind(20) is model.background and model.background_behind(None) is model.background
