@@ -119,12 +119,12 @@ class BenchConfig(InstantiateConfig):
 
 BENCH_MODES: dict[str, BenchConfig] = {
     "full": BenchConfig(),
-    # each effect on / off on a scene that has sky and exposure (pagoda), on one whose walls and ceiling
-    # no point explains (room) and on one with neither (tiny)
+    # every effect off, each alone on, all on, and auto, on a scene that has sky and exposure (pagoda), on
+    # one whose walls and ceiling no point explains (room) and on one with neither (tiny)
     "effects": BenchConfig(presets=("hico-gs-lite",), scenes=("pagoda", "room", "tiny"), budgets=(200,), lpips="none",
-                           effects=("environment=off,exposure=off,lod=on", "environment=on,exposure=off,lod=on",
-                                    "environment=off,exposure=on,lod=on", "environment=off,exposure=off,lod=off",
-                                    "auto")),
+                           effects=("environment=off,exposure=off,lod=off", "environment=on,exposure=off,lod=off",
+                                    "environment=off,exposure=on,lod=off", "environment=off,exposure=off,lod=on",
+                                    "environment=on,exposure=on,lod=on", "auto")),
     "quick": BenchConfig(presets=("octree-gs", "hico-gs"), scenes=("tiny",), budgets=(20, 40), lpips="none",
                          downscale=1, max_eval_views=2),
 }

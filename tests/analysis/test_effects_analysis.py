@@ -134,6 +134,6 @@ def test_bench_effects_axis_plans_one_run_per_effects_value(tmp_path):
     assert len(runs) == len(bench.scenes) * len(bench.effects)
     by_effects = {r["effects"]: r for r in runs if r["scene"] == "tiny"}
     assert by_effects["auto"]["preset"] == "hico-gs-lite"
-    spec = "environment=on,exposure=off,lod=on"
+    spec = "environment=on,exposure=off,lod=off"
     assert by_effects[spec]["config"].model.effects == spec
     assert len({r["run_dir"] for r in runs}) == len(runs)  # every effects value trains its own run
