@@ -96,15 +96,15 @@ class HiCoModelConfig(InstantiateConfig):
     Gaussians cannot lean on it (nerfstudio's splatfacto.py, _get_background_color); a learned
     constant also fits a plain backdrop the Gaussians do not reach (the room, environment off, 300
     steps: colour-corrected PSNR 28.19 dB against 22.30 over black)."""
-    random_background: float = 0.1
-    """Share of the run's first steps that composite over a random colour, a new one each step,
-    instead of the constant (environment off). A fresh decoder gives every Gaussian the same colour and
-    opacity, so over one constant the loss pulls every opacity the same way and the shared MLPs can
-    fade the whole model out (pagoda, environment off, 200 steps: 2 of 3 seeds ended with under 10
-    Gaussians drawn). A random colour cancels that pull and rewards opacity, as splatfacto's random
-    background does all run long (nerfstudio's splatfacto.py, _get_background_color); afterwards the
-    learned constant still fits what the Gaussians do not reach (random colours all run long cost tiny
-    2 dB)."""
+    random_background_steps: int = 20
+    """First steps that composite over a random colour, a new one each step, instead of the constant
+    (environment off). A fresh decoder gives every Gaussian the same colour and opacity, so over one
+    constant the loss pulls every opacity the same way and the shared MLPs can fade the whole model out
+    within the first ~15 steps at the starting learning rates, whatever the run's length (pagoda,
+    environment off, 200 steps: 2 of 3 seeds ended with under 10 Gaussians drawn). A random colour cancels
+    that pull and rewards opacity, as splatfacto's random background does all run long (nerfstudio's
+    splatfacto.py, _get_background_color); afterwards the learned constant fits what the Gaussians do not
+    reach (random colours all run long cost tiny 2 dB)."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
@@ -178,7 +178,7 @@ class HiCoModel(nn.Module):
         inputs = EffectInputs(dataset, train_ids, self.effects_report, config)
         built = {name: effect.build(inputs) for name, effect in self.active_effects.items()}
         self.effects = nn.ModuleDict({name: module for name, module in built.items() if module is not None})
-        self.random_background_until = round(config.random_background * total_steps) if total_steps else 0
+        self.random_background_until = config.random_background_steps
         self.register_load_state_dict_pre_hook(_effect_keys_of_older_checkpoints)
         self.last_num_gaussians = 0
 

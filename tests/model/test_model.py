@@ -116,7 +116,7 @@ def test_viewer_lod_controls(tiny):
 def test_masked_pixels_teach_nothing(tiny):
     """A photo's mask (white = scene; transparency from hico-process) leaves the pixels outside it out of
     the photometric loss: no loss and no gradient from them."""
-    model = _config(random_background=0.0).setup(dataset=tiny, total_steps=300)  # the same render each time
+    model = _config(random_background_steps=0).setup(dataset=tiny, total_steps=300)  # the same render each time
     batch = _batch(tiny)
     height, width = batch.images.shape[1:3]
     half = torch.zeros(1, height, width, 1, dtype=torch.bool)
@@ -236,7 +236,7 @@ def test_the_ablation_presets_keep_octree_levels_at_every_budget():
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_random_background_start_keeps_a_fresh_model_from_fading_out(seed):
     """Environment off on pagoda: over one constant colour the first steps pull every fresh Gaussian's
-    opacity down together (with random_background=0 these seeds keep ~1 % of the Gaussians drawn after
+    opacity down together (with random_background_steps=0 these seeds keep ~1 % of the Gaussians drawn after
     20 steps); over a random colour a step most stay."""
     from hico_plugin.engine.optimizers import Optimizers
 
