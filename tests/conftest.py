@@ -9,7 +9,9 @@ import pytest
 
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory) -> Path:
-    """The directory of a tiny trained run: hico-gs-lite, built-in `tiny` scene, 2 steps, no viewer.
+    """The directory of a tiny trained run: hico-gs-lite, built-in `tiny` scene, 2 steps, no viewer,
+    octree levels forced on (tiny's views stand at one distance, so auto would train one level, and the
+    export, viewer and evaluation tests read levels).
 
     Trained once per session (about half the time of the CLI tests). Tests may add files to it and
     rewrite eval.json (hico-eval does), but must not remove what training wrote."""
@@ -17,7 +19,8 @@ def tiny_run(tmp_path_factory) -> Path:
 
     out = tmp_path_factory.mktemp("tiny-run")
     train(parse(["hico-gs-lite", "--scene", "tiny", "--max-steps", "2", "--vis", "none", "--progress", "none",
-                 "--output-dir", str(out), "--model.eval-lpips", "none", "--model.renderer.no-use-compile"]))
+                 "--output-dir", str(out), "--model.eval-lpips", "none", "--model.renderer.no-use-compile",
+                 "--model.effects", "auto,lod=on"]))
     return out
 
 

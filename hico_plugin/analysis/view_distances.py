@@ -1,5 +1,5 @@
-"""How far the cameras are from what they see: whether the views span distances (reported), and the
-octree level count that spread calls for (the LOD effect's finding).
+"""How far the cameras are from what they see: whether the views stand at different distances, and
+the octree level count the points' distance span calls for (the LOD effect's finding, which reports both).
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from hico_plugin.field.octree import level_count
 MULTI_DISTANCE_MIN_RATIO = 2.0
 
 # lod: octree levels = round(log2(d_max / d_min)) + 1 (the octree's own rule, fork 2), with the
-# distances' 0.1 / 99.9 % quantiles; more than one level means the capture spans distances.
+# distances' 0.1 / 99.9 % quantiles; more than one level means the points span distances. Whether the
+# views themselves stand at different distances is reported beside it (the LOD effect's measured rule).
 LOD_MIN_LEVELS = 2
 
 
@@ -38,7 +39,9 @@ def lod_finding(evidence: DatasetEvidence) -> EffectFinding:
     dist_min, dist_max = evidence.dataset.camera_distance_range()
     levels = level_count(dist_min, dist_max)
     ratio = dist_max / max(dist_min, 1e-12)
+    views = multi_distance_finding(evidence)
     present = levels >= LOD_MIN_LEVELS
     reason = (f"camera-to-point distances span {ratio:.3g}x ({dist_min:.3g} .. {dist_max:.3g}) -> {levels} "
-              f"octree level{'s' if levels != 1 else ''}")
-    return EffectFinding(bool(present), reason, {"dist_min": dist_min, "dist_max": dist_max, "levels": levels})
+              f"octree level{'s' if levels != 1 else ''}; {views.reason}")
+    return EffectFinding(bool(present), reason, {"dist_min": dist_min, "dist_max": dist_max, "levels": levels,
+                                                 "views_multi_distance": views.present})

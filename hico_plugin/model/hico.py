@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field as dataclass_field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -82,10 +82,11 @@ class HiCoModelConfig(InstantiateConfig):
     (environment = a directional background where no point explains the photos, exposure = per-image colour
     transform, lod = octree levels from the distance spread); NAME=on|off forces one, e.g.
     "auto,environment=off" or "environment=on,exposure=off,lod=on"."""
-    lod_min_steps: int = 0
-    """``auto`` turns the lod effect on only in runs of at least this many steps (0: whenever the camera
-    distances call for levels, as the paper's octree). Each level's anchors train on the views at its
-    distance only, so a short run trains one flat level better; hico-gs-lite sets it from measurements."""
+    lod_rule: Literal["octree", "measured"] = "octree"
+    """When ``auto`` turns the lod effect on. "octree": whenever the points' distance span gives two levels
+    or more (Octree-GS; the paper's presets). "measured": only where the views themselves stand at
+    different distances and the run has 1,000 steps or more, the settings where levels measured better
+    than one flat level (hico-gs-lite; the figures are beside LOD_MIN_STEPS)."""
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)

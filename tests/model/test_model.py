@@ -209,20 +209,27 @@ def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losse
     assert any(f"-> {levels} octree levels" in line for line in summarize(tiny))
 
 
-def test_auto_skips_octree_levels_in_runs_shorter_than_lod_min_steps(tiny):
+def test_the_measured_lod_rule_wants_views_at_several_distances_and_1000_steps(tiny):
+    from hico_plugin.analysis.evidence import EffectFinding
     from hico_plugin.field.octree import level_count
+    from hico_plugin.model.effects import EFFECTS, choose_effects
+
+    lod, measured = EFFECTS.get("lod")(), _config(lod_rule="measured")
+    spread = EffectFinding(True, "5 levels", {"levels": 5, "views_multi_distance": True})
+    short = lod.auto_choice("lod", spread, 999, measured)
+    assert not short.on and "a run of 999 steps is too short" in short.reason
+    assert lod.auto_choice("lod", spread, 1000, measured).on
+    one_range = dataclasses.replace(spread, figures={"levels": 5, "views_multi_distance": False})
+    assert not lod.auto_choice("lod", one_range, 30_000, measured).on
+    assert lod.auto_choice("lod", one_range, 10, _config()).on  # the octree rule: levels at any length
+    assert not lod.auto_choice("lod", dataclasses.replace(spread, present=False), 30_000, measured).on
 
     levels = level_count(*tiny.camera_distance_range())
-    assert levels >= 2  # the distances call for levels, so the budget alone decides below
-    short = _config(lod_min_steps=1000).setup(dataset=tiny, total_steps=999)
-    assert not short.effect_choices["lod"].on and short.field.grid.num_levels == 1
-    assert "a run of 999 steps is too short" in short.effect_choices["lod"].reason
-    long = _config(lod_min_steps=1000).setup(dataset=tiny, total_steps=1000)
-    assert long.effect_choices["lod"].on and long.field.grid.num_levels == levels
-    paper = _config().setup(dataset=tiny, total_steps=10)  # default 0: levels whenever the data calls for them
-    assert paper.effect_choices["lod"].on and paper.field.grid.num_levels == levels
-    forced = _config(lod_min_steps=1000, effects="auto,lod=on").setup(dataset=tiny, total_steps=10)
-    assert forced.field.grid.num_levels == levels
+    assert levels >= 2  # tiny's points span distances, its views stand at one distance
+    choice = choose_effects("auto", tiny, 3000, measured)[0]["lod"]
+    assert not choice.on and "about one distance" in choice.reason
+    assert measured.setup(dataset=tiny, total_steps=10).field.grid.num_levels == 1
+    assert _config().setup(dataset=tiny, total_steps=10).field.grid.num_levels == levels
 
 
 def test_the_ablation_presets_keep_octree_levels_at_every_budget():
@@ -230,7 +237,7 @@ def test_the_ablation_presets_keep_octree_levels_at_every_budget():
     from hico_plugin.presets import all_presets
 
     # the paper's ablations compare aggregators across levels; hico-bench runs them for 100-400 steps
-    assert all(all_presets()[name][1].model.lod_min_steps == 0 for name in ABLATION_PRESETS)
+    assert all(all_presets()[name][1].model.lod_rule == "octree" for name in ABLATION_PRESETS)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
