@@ -17,7 +17,7 @@ from hico_plugin.model.effects.base import EFFECTS, Effect, EffectChoice
 # - 1,000 steps: one level higher on room (34.73 +- 0.54 against 33.74 +- 0.27) and tiny (24.31 +- 0.09
 #   against 23.84 +- 0.05), whose views stand at one distance (median distances 1.15x and 1.13x apart);
 #   a tie on pagoda (30.05 +- 0.08, 29.87 +- 0.22; views 1.79x apart);
-# - city-block, views 3.21x apart: levels higher by 0.84 dB at 1,500 steps (seeds 0-1) and 0.75 at 3,000.
+# - city-block, views 3.21x apart: levels higher by 0.95 dB at 1,500 steps (seeds 0-1) and 0.75 at 3,000.
 LOD_MIN_STEPS = 1_000
 
 
