@@ -116,7 +116,7 @@ def test_viewer_lod_controls(tiny):
 def test_masked_pixels_teach_nothing(tiny):
     """A photo's mask (white = scene; transparency from hico-process) leaves the pixels outside it out of
     the photometric loss: no loss and no gradient from them."""
-    model = _config(random_background_steps=0).setup(dataset=tiny, total_steps=300)  # the same render each time
+    model = _config().setup(dataset=tiny, total_steps=300)
     batch = _batch(tiny)
     height, width = batch.images.shape[1:3]
     half = torch.zeros(1, height, width, 1, dtype=torch.bool)
@@ -249,7 +249,8 @@ def test_a_random_background_start_keeps_a_fresh_model_from_fading_out(seed):
 
     pagoda = DataSourceConfig(scene="pagoda", downscale=2).setup()
     torch.manual_seed(seed)
-    model = _config(effects="environment=off,exposure=off,lod=on").setup(dataset=pagoda, total_steps=200)
+    model = _config(effects="environment=off,exposure=off,lod=on",
+                    random_background_steps=20).setup(dataset=pagoda, total_steps=200)
     assert model.random_background_until == 20
     probe = pagoda.cameras[int(pagoda.test_indices[0])]
 
