@@ -119,6 +119,9 @@ def environment_finding(evidence: DatasetEvidence) -> EffectFinding:
     figures: dict[str, Any] = {"unexplained_fraction": round(fraction, 4), "views_analysed": len(views),
                                "views_with_unexplained": views_with, "threshold_fraction": MIN_FRACTION,
                                "up": [round(float(x), 4) for x in up]}
+    if uncovered:  # what a constant behind the Gaussians should start at (HiCoModelConfig.background_start)
+        colours = np.concatenate([c.colours[c.uncovered] for c in cells.values()])
+        figures["unexplained_colour"] = [round(float(x), 4) for x in np.median(colours, axis=0)]
     if not present:
         return EffectFinding(False, share, figures)
     parallax = measure_parallax(dataset, cells, photo_gains(evidence)[0])

@@ -49,7 +49,7 @@ _RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environmen
 _ADDED_FIELDS = {
     "hico_plugin.data.parser.DataParserConfig": {"orient": False, "orient_method": "up"},
     "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False, "draw_ancestors": True},
-    "hico_plugin.model.hico.HiCoModelConfig": {"learn_background": False},
+    "hico_plugin.model.hico.HiCoModelConfig": {"learn_background": False, "background_start": "configured"},
 }
 
 

@@ -34,7 +34,8 @@ from hico_plugin.field.lookup_stats import flat_metrics, summarise, view_lookup_
 from hico_plugin.losses import LossConfig, Losses, default_losses
 from hico_plugin.metrics import depth_abs_rel, lpips, normal_angular_error, psnr, ssim
 from hico_plugin.metrics.colour import cc_psnr, nerfw_psnr
-from hico_plugin.model.effects import EFFECTS, RENAMED_EFFECTS, EffectInputs, choose_effects, parse_effects
+from hico_plugin.model.effects import (EFFECTS, RENAMED_EFFECTS, EffectInputs, choose_effects, data_background,
+                                      parse_effects)
 from hico_plugin.model.effects.environment import EnvironmentConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
@@ -90,22 +91,23 @@ class HiCoModelConfig(InstantiateConfig):
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Colour composited behind the Gaussians when the environment effect is off (where learned, its start)."""
+    """Colour composited behind the Gaussians when the environment effect is off (where learned, its start
+    unless background_start takes it from the data)."""
+    background_start: Literal["data", "configured"] = "data"
+    """Where the learned constant starts. "data": the median colour of the photo cells no reconstructed
+    point explains (the environment finding's sky or plain walls) where the analysis finds them, else
+    ``background``; "configured": ``background``. A fresh decoder gives every Gaussian the same colour and
+    opacity, so over a constant far from the photos' own backdrop the loss pulls every opacity down
+    together and can fade the whole model out: pagoda, environment off, 200 steps, seeds 1 / 2 end at
+    13.12 / 13.12 dB (colour-corrected) from black and 21.68 / 21.56 from its sky's colour; the room with
+    every effect off 26.04 / 26.00 from black and 26.26 / 26.24 from its walls' colour. Tiny's backdrop
+    is a dark void the analysis does not count, so it starts black."""
     learn_background: bool = True
     """Learn that colour (parameter group "background"): with the environment off, the best constant
     behind the Gaussians, not black. Splatfacto trains over a random colour instead so that the
     Gaussians cannot lean on it (nerfstudio's splatfacto.py, _get_background_color); a learned
     constant also fits a plain backdrop the Gaussians do not reach (the room, environment off, 300
     steps: colour-corrected PSNR 28.19 dB against 22.30 over black)."""
-    random_background_steps: int = 0
-    """First steps that composite over a random colour, a new one each step, instead of the constant
-    (environment off; splatfacto trains over random colours all run long: nerfstudio's splatfacto.py,
-    _get_background_color). A fresh decoder gives every Gaussian the same colour and opacity, so over one
-    constant the loss can pull every opacity down together within the first ~15 steps and fade the whole
-    model out: pagoda, environment off, 200 steps, seeds 0-2 end at 20.89 / 13.12 / 13.12 dB
-    (colour-corrected); 20 random steps end that (21.11 / 20.99 / 20.84). Not the default, because they
-    cost the room with every effect off 4.3 dB (21.10 / 21.12 for seeds 0 / 1 against 25.45 +- 0.95 over
-    seeds 0-2, 200 steps) for reasons not yet known. Random colours all run long cost tiny 2 dB."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
@@ -171,15 +173,20 @@ class HiCoModel(nn.Module):
         self.renderer = config.renderer.setup()
         self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
-        background = torch.tensor(config.background, dtype=torch.float32)
-        if config.learn_background and not self.composites_behind():
+        learned = config.learn_background and not self.composites_behind()
+        start = data_background(self.effect_choices, self.effects_report, dataset) \
+            if learned and config.background_start == "data" else None
+        background = torch.tensor(config.background if start is None else start, dtype=torch.float32)
+        if start is not None:
+            print(f"background: a learned constant from ({', '.join(f'{c:.2f}' for c in start)}), the median colour "
+                  f"of the photo cells no reconstructed point explains")
+        if learned:
             self.background = nn.Parameter(background)
         else:  # unused behind a composited environment, or kept as configured
             self.register_buffer("background", background)
         inputs = EffectInputs(dataset, train_ids, self.effects_report, config)
         built = {name: effect.build(inputs) for name, effect in self.active_effects.items()}
         self.effects = nn.ModuleDict({name: module for name, module in built.items() if module is not None})
-        self.random_background_until = config.random_background_steps
         self.register_load_state_dict_pre_hook(_effect_keys_of_older_checkpoints)
         self.last_num_gaussians = 0
 
@@ -214,16 +221,10 @@ class HiCoModel(nn.Module):
         wanted = set(outputs) | ({"alpha"} if behind and "rgb" in outputs else set())
         out = self.renderer(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                             gaussians.colors, camera, outputs=tuple(sorted(wanted)),
-                            background=None if behind else self.background_behind(step))
+                            background=None if behind else self.background)
         if out.rgb is not None:
             out.rgb = self.apply_effects(out, camera)
         return out, gaussians
-
-    def background_behind(self, step: int | None) -> Tensor:
-        """The colour composited behind the Gaussians at training ``step`` (None: evaluation)."""
-        if step is not None and step < self.random_background_until:
-            return torch.rand(3, device=self.background.device)
-        return self.background
 
     def composites_behind(self) -> bool:
         """Whether an effect that is on composites what lies behind the Gaussians (the environment)."""

@@ -6,7 +6,7 @@ import importlib
 import pkgutil
 
 from hico_plugin.model.effects.base import (
-    EFFECTS, RENAMED_EFFECTS, Effect, EffectChoice, EffectInputs, EffectsReport, analyze_effects, choose_effects,
+    EFFECTS, RENAMED_EFFECTS, Effect, EffectChoice, EffectInputs, EffectsReport, analyze_effects, choose_effects, data_background,
     parse_effects,
 )
 
@@ -14,4 +14,4 @@ for _module in sorted(info.name for info in pkgutil.iter_modules(__path__) if in
     importlib.import_module(f"{__name__}.{_module}")
 
 __all__ = ["EFFECTS", "RENAMED_EFFECTS", "Effect", "EffectChoice", "EffectInputs", "EffectsReport", "analyze_effects",
-           "choose_effects", "parse_effects"]
+           "choose_effects", "data_background", "parse_effects"]

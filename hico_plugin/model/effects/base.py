@@ -64,6 +64,11 @@ class Effect:
         default follows the finding alone."""
         return EffectChoice(name, finding.present, finding.reason)
 
+    def background_when_off(self, finding: EffectFinding) -> tuple[float, float, float] | None:
+        """Off, the colour the learned constant behind the Gaussians starts at, from this effect's
+        finding (None: no opinion; an effect with ``replaces_background`` may have one)."""
+        return None
+
     def configure_field(self, field_config: Any, on: bool) -> Any:
         """The anchor field's config with this effect on or off (called for every registered effect)."""
         return field_config
@@ -162,6 +167,22 @@ def analyze_effects(dataset: Any, evidence: DatasetEvidence | None = None) -> Ef
     for name in REPORTED_ONLY:
         findings.setdefault(name, reported[name](evidence))
     return EffectsReport(findings, photo_gains(evidence)[1])
+
+
+def data_background(choices: dict[str, EffectChoice], report: EffectsReport | None,
+                    dataset: Any) -> tuple[float, float, float] | None:
+    """The colour the data says lies behind the Gaussians, from the first effect that is off and has an
+    opinion (the environment: the median colour of the photo cells no point explains); None without one.
+    Measured here when every effect was forced and nothing was analysed."""
+    for name, choice in choices.items():
+        effect = EFFECTS.get(name)()
+        if choice.on or not effect.replaces_background:
+            continue
+        finding = report.effects[effect.finding] if report is not None else effect.detect(DatasetEvidence(dataset))
+        colour = effect.background_when_off(finding)
+        if colour is not None:
+            return colour
+    return None
 
 
 def parse_effects(spec: str) -> dict[str, str]:

@@ -53,6 +53,10 @@ class EnvironmentEffect(Effect):
     def detect(self, evidence: DatasetEvidence) -> EffectFinding:
         return environment_finding(evidence)
 
+    def background_when_off(self, finding: EffectFinding) -> tuple[float, float, float] | None:
+        colour = finding.figures.get("unexplained_colour")
+        return tuple(colour) if finding.present and colour is not None else None
+
     def build(self, inputs: EffectInputs) -> "EnvironmentModel":
         return inputs.model_config.environment.setup()
 
