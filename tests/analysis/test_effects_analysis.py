@@ -87,6 +87,10 @@ def test_appearance_starts_from_the_measured_gains():
     true = (true - true.mean(axis=0))[dataset.train_indices.numpy()]
     start = torch.diagonal(colour.matrix.detach(), dim1=1, dim2=2).log2().numpy()
     assert np.abs(start - true).max() < 0.1
+    # every effect forced: no analysis ran, and the exposure still starts from the measured gains
+    forced = HiCoModelConfig(effects="environment=off,exposure=on,lod=off").setup(dataset=dataset, total_steps=100)
+    assert forced.effects_report is None
+    torch.testing.assert_close(forced.effects["exposure"].matrix, colour.matrix)
     assert torch.count_nonzero(colour.matrix.detach() - torch.diag_embed(torch.diagonal(
         colour.matrix.detach(), dim1=1, dim2=2))) == 0 and not colour.bias.any()
     # an unknown gain (too few shared points) starts at identity

@@ -8,7 +8,7 @@ chosen effects and names none. ``--model.effects`` chooses::
 
     --model.effects auto                   # the default: exactly the effects the analysis finds
     --model.effects auto,environment=off   # detect, but never learn a directional background
-    --model.effects environment=on,exposure=on,lod=on   # no analysis when every effect is forced
+    --model.effects environment=on,exposure=on,lod=on   # every effect forced: only what an effect that is on needs is measured
 """
 
 from __future__ import annotations

@@ -22,10 +22,10 @@ import torch
 from torch import Tensor, nn
 
 from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
-from hico_plugin.analysis.photo_gains import exposure_finding
+from hico_plugin.analysis.photo_gains import exposure_finding, photo_gains
 from hico_plugin.cameras import Camera
 from hico_plugin.engine.optimizers import ParamGroupOptimizerConfig
-from hico_plugin.model.effects.base import EFFECTS, Effect, EffectInputs
+from hico_plugin.model.effects.base import EFFECTS, Effect, EffectInputs, EffectsReport
 from hico_plugin.rasterizer import RenderOutputs
 
 
@@ -41,7 +41,10 @@ class ExposureEffect(Effect):
         return exposure_finding(evidence)
 
     def build(self, inputs: EffectInputs) -> "AffineColour":
-        gains = None if inputs.report is None else torch.from_numpy(inputs.report.log2_gains(inputs.train_ids.tolist()))
+        report = inputs.report
+        if report is None:  # every effect was forced, so nothing was analysed: measure the gains alone
+            report = EffectsReport({}, photo_gains(DatasetEvidence(inputs.dataset))[1])
+        gains = torch.from_numpy(report.log2_gains(inputs.train_ids.tolist()))
         return AffineColour(len(inputs.train_ids), gains)
 
     def default_lrs(self) -> dict[str, ParamGroupOptimizerConfig]:
