@@ -8,7 +8,7 @@ chosen effects and names none. ``--model.effects`` chooses::
 
     --model.effects auto                   # the default: exactly the effects the analysis finds
     --model.effects auto,environment=off   # detect, but never learn a directional background
-    --model.effects environment=on,exposure=on,lod=on   # every effect forced: only what an effect that is on needs is measured
+    --model.effects environment=on,exposure=on,lod=on   # all forced: no full analysis, only what the effects start from
 """
 
 from __future__ import annotations
