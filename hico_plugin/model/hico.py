@@ -86,8 +86,9 @@ class HiCoModelConfig(InstantiateConfig):
     lod_rule: Literal["octree", "measured"] = "octree"
     """When ``auto`` turns the lod effect on. "octree": whenever the points' distance span gives two levels
     or more (Octree-GS; the paper's presets). "measured": only where the views themselves stand at
-    different distances and the run has 1,000 steps or more, the settings where levels measured better
-    than one flat level (hico-gs-lite; the figures are beside LOD_MIN_STEPS)."""
+    different distances and the run has 1,000 steps or more, the settings where levels scored a higher
+    test PSNR than one flat level (hico-gs-lite; the figures are beside LOD_MIN_STEPS; the mesh can
+    disagree: the room's levels mesh better)."""
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
