@@ -121,8 +121,9 @@ BENCH_MODES: dict[str, BenchConfig] = {
     "full": BenchConfig(),
     # every effect off, each alone on, all on, and auto, on a scene that has sky and exposure (pagoda), on
     # one whose walls and ceiling no point explains (room) and on one with neither (tiny). At 1,000 steps:
-    # 200 rank how fast a setting starts, not what it models (there one flat level beat the octree by
-    # 0.7-1.6 dB on three scenes, and tiny's environment led by 0.24 dB; at 1,000 both were gone).
+    # 200 rank how fast a setting starts, not what it models (there tiny's environment led by 0.24 dB,
+    # gone at 1,000, and one flat level beat the octree by 0.7-1.6 dB on three scenes, which at 1,000
+    # held only where the views stand at one distance).
     "effects": BenchConfig(presets=("hico-gs-lite",), scenes=("pagoda", "room", "tiny"), budgets=(1000,), lpips="none",
                            effects=("environment=off,exposure=off,lod=off", "environment=on,exposure=off,lod=off",
                                     "environment=off,exposure=on,lod=off", "environment=off,exposure=off,lod=on",
