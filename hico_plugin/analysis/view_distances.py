@@ -21,6 +21,11 @@ LOD_MIN_LEVELS = 2
 
 
 def multi_distance_finding(evidence: DatasetEvidence) -> EffectFinding:
+    """Whether the views stand at different distances (measured once per evidence: the lod finding reads it)."""
+    return evidence.memo("multi_distance", lambda: _multi_distance(evidence))
+
+
+def _multi_distance(evidence: DatasetEvidence) -> EffectFinding:
     dataset, tracks = evidence.dataset, evidence.tracks
     centres = dataset.cameras.centers.double().numpy()
     distance = np.linalg.norm(tracks.points[tracks.obs_point] - centres[tracks.obs_view], axis=1)

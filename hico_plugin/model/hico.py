@@ -22,6 +22,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
+from hico_plugin.analysis.evidence import DatasetEvidence
 from hico_plugin.cameras import Camera, Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine.distributed import all_reduce_sum_
@@ -154,7 +155,8 @@ class HiCoModel(nn.Module):
             raise HicoError("dataset: the training split is empty")
         train_cameras = dataset.cameras
         self.train_slot = {int(i): slot for slot, i in enumerate(train_ids.tolist())}
-        self.effect_choices, self.effects_report = choose_effects(config.effects, dataset, total_steps, config)
+        evidence = DatasetEvidence(dataset)  # measured on first use, shared by the analysis and the effects
+        self.effect_choices, self.effects_report = choose_effects(config.effects, dataset, total_steps, config, evidence)
         for choice in self.effect_choices.values():
             print(f"effect  {choice.line()}")
         effects = {name: EFFECTS.get(name)() for name in self.effect_choices}
@@ -175,7 +177,7 @@ class HiCoModel(nn.Module):
         self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
         learned = config.learn_background and not self.composites_behind()
-        start = data_background(self.effect_choices, self.effects_report, dataset) \
+        start = data_background(self.effect_choices, self.effects_report, evidence) \
             if learned and config.background_start == "data" else None
         background = torch.tensor(config.background if start is None else start, dtype=torch.float32)
         if start is not None:
@@ -185,7 +187,7 @@ class HiCoModel(nn.Module):
             self.background = nn.Parameter(background)
         else:  # unused behind a composited environment, or kept as configured
             self.register_buffer("background", background)
-        inputs = EffectInputs(dataset, train_ids, self.effects_report, config)
+        inputs = EffectInputs(dataset, train_ids, self.effects_report, config, evidence)
         built = {name: effect.build(inputs) for name, effect in self.active_effects.items()}
         self.effects = nn.ModuleDict({name: module for name, module in built.items() if module is not None})
         self.register_load_state_dict_pre_hook(_effect_keys_of_older_checkpoints)

@@ -6,8 +6,8 @@ import importlib
 import pkgutil
 
 from hico_plugin.model.effects.base import (
-    EFFECTS, RENAMED_EFFECTS, Effect, EffectChoice, EffectInputs, EffectsReport, analyze_effects, choose_effects, data_background,
-    parse_effects,
+    EFFECTS, RENAMED_EFFECTS, Effect, EffectChoice, EffectInputs, EffectsReport, analyze_effects, choose_effects,
+    data_background, parse_effects,
 )
 
 for _module in sorted(info.name for info in pkgutil.iter_modules(__path__) if info.name != "base"):

@@ -37,6 +37,7 @@ class EffectInputs:
     train_ids: Tensor  # [C] int64 dataset indices of the training views, in training-slot order
     report: "EffectsReport | None"  # the analysis (None when every effect was forced)
     model_config: Any  # the HiCoModelConfig (an effect's own options live there)
+    evidence: DatasetEvidence  # the dataset's measurements, shared with the analysis and computed on first use
 
 
 class Effect:
@@ -170,15 +171,15 @@ def analyze_effects(dataset: Any, evidence: DatasetEvidence | None = None) -> Ef
 
 
 def data_background(choices: dict[str, EffectChoice], report: EffectsReport | None,
-                    dataset: Any) -> tuple[float, float, float] | None:
+                    evidence: DatasetEvidence) -> tuple[float, float, float] | None:
     """The colour the data says lies behind the Gaussians, from the first effect that is off and has an
     opinion (the environment: the median colour of the photo cells no point explains); None without one.
-    Measured here when every effect was forced and nothing was analysed."""
+    Measured from ``evidence`` when every effect was forced and nothing was analysed."""
     for name, choice in choices.items():
         effect = EFFECTS.get(name)()
         if choice.on or not effect.replaces_background:
             continue
-        finding = report.effects[effect.finding] if report is not None else effect.detect(DatasetEvidence(dataset))
+        finding = report.effects[effect.finding] if report is not None else effect.detect(evidence)
         colour = effect.background_when_off(finding)
         if colour is not None:
             return colour
@@ -202,14 +203,14 @@ def parse_effects(spec: str) -> dict[str, str]:
     return choices
 
 
-def choose_effects(spec: str, dataset: Any, total_steps: int | None = None,
-                   model_config: Any = None) -> tuple[dict[str, EffectChoice], EffectsReport | None]:
+def choose_effects(spec: str, dataset: Any, total_steps: int | None = None, model_config: Any = None,
+                   evidence: DatasetEvidence | None = None) -> tuple[dict[str, EffectChoice], EffectsReport | None]:
     """Resolve ``spec`` against ``dataset`` for a run of ``total_steps``: (choice per effect, the
     analysis report or None when every effect was forced)."""
     choices = parse_effects(spec)
     report = None
     if any(value == "auto" for value in choices.values()):
-        report = analyze_effects(dataset)
+        report = analyze_effects(dataset, evidence)
     out = {}
     for name, value in choices.items():
         if value == "auto":

@@ -41,10 +41,9 @@ class ExposureEffect(Effect):
         return exposure_finding(evidence)
 
     def build(self, inputs: EffectInputs) -> "AffineColour":
-        report = inputs.report
-        if report is None:  # every effect was forced, so nothing was analysed: measure the gains alone
-            report = EffectsReport({}, photo_gains(DatasetEvidence(inputs.dataset))[1])
-        gains = torch.from_numpy(report.log2_gains(inputs.train_ids.tolist()))
+        # measured once per evidence: the analysis's own gains, or measured here when every effect was forced
+        gains = EffectsReport({}, photo_gains(inputs.evidence)[1]).log2_gains(inputs.train_ids.tolist())
+        gains = torch.from_numpy(gains)
         return AffineColour(len(inputs.train_ids), gains)
 
     def default_lrs(self) -> dict[str, ParamGroupOptimizerConfig]:
