@@ -60,10 +60,25 @@ class DensifyConfig(InstantiateConfig):
     is for context. Drawn, they add coarse Gaussians off the surface: on city-block at 3,000 steps
     they lowered mesh F1 by about 0.1 and raised PSNR by about 0.4 dB (README, "What CLCA and DNGC
     buy"). An ancestor is drawn once growth asks for an anchor in its cell."""
+    max_anchors: int = 0
+    """Budget of drawn anchors (0: none). Once growth would pass it, an adjustment adds only the new
+    cells with the largest offset gradients, as many as fit after its pruning; pruning frees room. A
+    fixed budget filled by score is Taming 3DGS's and gsplat's MCMC ``cap_max``: the step's cost stops
+    rising with the anchors where the budget is reached."""
+    max_anchors_per_seed: float = 0.0
+    """The same budget as a multiple of the anchors the octree starts with (0: none; Taming 3DGS's
+    "multiplier" mode): it follows the capture's size. With max_anchors too, the smaller counts."""
     keep_ancestors_without_context: bool = False
     """Keep the tree also where no trilinear CLCA lookup reads it (context kind none, or the paper's
     lookup): the anchors the tree adds, without the context. This is the control that tells the two
     apart in CLCA's ablation (README, "What CLCA and DNGC buy")."""
+
+    def budget(self, initial_anchors: int) -> int | None:
+        """The drawn-anchor budget of a field that started with ``initial_anchors``; None: unbounded."""
+        limits = [self.max_anchors] if self.max_anchors > 0 else []
+        if self.max_anchors_per_seed > 0:
+            limits.append(int(self.max_anchors_per_seed * initial_anchors))
+        return min(limits) if limits else None
 
     def keeps_tree(self, context: Any) -> bool:
         """Whether densification keeps the octree a tree for the field whose context config is
@@ -97,7 +112,8 @@ def level_thresholds(levels: Tensor, grid: OctreeGrid, config: DensifyConfig) ->
 
 def grow_anchors(positions: Tensor, levels: Tensor, features: Tensor, offsets: Tensor, log_scaling: Tensor,
                  grads: Tensor, grid: OctreeGrid, config: DensifyConfig, camera_centers: Tensor,
-                 visible_threshold: float, allow_next_level: bool, blocks: Tensor | None = None) -> GrownAnchors:
+                 visible_threshold: float, allow_next_level: bool, blocks: Tensor | None = None,
+                 limit: int | None = None) -> GrownAnchors:
     """Anchors spawned by high-gradient offsets, all levels at once.
 
     positions [N,3], levels [N], features [N,d], offsets [N,K,3], log_scaling [N,6], grads [N,K]
@@ -107,7 +123,8 @@ def grow_anchors(positions: Tensor, levels: Tensor, features: Tensor, offsets: T
     already holding an anchor of that level are dropped, the rest de-duplicated and weeded out by
     visibility. A new cell's feature is the channel-wise max over its same-level source anchors (zero
     if only finer-level proposals hit it, as in the base method). blocks [N] bool: the anchors whose
-    cells count as held (default all).
+    cells count as held (default all). limit: keep at most this many new cells, those whose largest
+    proposing gradient is largest (default all).
     """
     growth = float(grid.fork) ** config.update_ratio
     tau = level_thresholds(levels, grid, config).to(grads)[:, None]
@@ -139,6 +156,11 @@ def grow_anchors(positions: Tensor, levels: Tensor, features: Tensor, offsets: T
     new_levels = new_keys[:, 0]
     new_positions = grid.grid_position(new_keys[:, 1:], new_levels, positions.dtype)
     keep = visibility_fraction(new_positions, new_levels, camera_centers, grid) > visible_threshold
+    if limit is not None and int(keep.sum()) > limit:
+        score = grads.new_zeros(num_new).scatter_reduce(0, slot, grads[rows, children][free], "amax",
+                                                        include_self=False)
+        score = torch.where(keep, score, torch.full_like(score, -1.0))
+        keep = torch.zeros_like(keep).index_fill_(0, torch.topk(score, max(limit, 0)).indices, True)
     return GrownAnchors(new_positions[keep], new_levels[keep], new_features[keep])
 
 

@@ -141,6 +141,9 @@ class AnchorField(nn.Module):
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
         self.set_schedule_scale(schedule_scale)
         self.last_densify: dict[str, int] = {}
+        # The octree's own anchors, the base of a relative anchor budget. A resumed run rebuilds the
+        # same octree from the same data before loading its checkpoint, so this stays the run's.
+        self.initial_anchors = num
 
     # ----- schedule -------------------------------------------------------------------------------
 
@@ -302,15 +305,17 @@ class AnchorField(nn.Module):
             self.extra_level += extra_level_increment(grads, eligible, self.levels, self.grid, cfg)
         threshold = self.config.octree.visible_threshold
         hides = self.keeps_ancestors and not cfg.draw_ancestors
+        prune, judged = prune_decision(self.opacity_accum, self.anchor_denom, cfg.min_opacity, check_views)
+        budget = cfg.budget(self.initial_anchors)
+        room = None if budget is None else budget - int((self.drawn & ~prune).sum())
         grown = grow_anchors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
                              self.offsets.detach(), self.log_scaling.detach(), grads, self.grid, cfg,
                              self.train_camera_centers, max(threshold, 0.0), allow_finer,
-                             blocks=self.drawn if hides else None)
+                             blocks=self.drawn if hides else None, limit=room)
         if hides:
             grown = self._draw_hidden_ancestors(grown)
         self.offset_grad_accum[eligible] = 0
         self.offset_denom[eligible] = 0
-        prune, judged = prune_decision(self.opacity_accum, self.anchor_denom, cfg.min_opacity, check_views)
         new_drawn = torch.ones(grown.positions.shape[0], dtype=torch.bool, device=self.drawn.device)
         if self.keeps_ancestors:
             # an ancestor no kept anchor needs goes; close_ancestors revives the needed ones

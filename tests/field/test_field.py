@@ -287,9 +287,10 @@ def test_accumulate_stats_of_a_view_that_decodes_nothing(radii_shape):
     assert int(field.anchor_denom.sum()) == len(g.visible_ids)
 
 
-def grow_prune_case() -> AnchorField:
+def grow_prune_case(**densify_changes) -> AnchorField:
     """Anchor 0 (level 0, cell 4,4,4) has high-gradient offsets; anchor 1 never shows opacity."""
-    field = hand_field([[4, 4, 4], [0, 0, 0]], [0, 0], [[4, 4, 1.5]], progressive=False)
+    field = hand_field([[4, 4, 4], [0, 0, 0]], [0, 0], [[4, 4, 1.5]], progressive=False,
+                       densify=DensifyConfig(**densify_changes))
     tau = field.config.densify.grad_threshold
     growth = 2**0.2
     with torch.no_grad():
@@ -328,6 +329,29 @@ def test_growing_and_pruning_on_a_hand_built_case():
     # Statistics: eligible offsets and judged anchors reset; new rows zero.
     assert field.offset_denom.abs().sum() == 0 and field.anchor_denom.abs().sum() == 0
     assert field.offsets.shape == (3, 5, 3) and int(field.stat_views) == 0
+
+
+@pytest.mark.parametrize("budget, grown", [
+    ({}, [[5.0, 4, 4], [4, 4.5, 4]]), ({"max_anchors": 3}, [[5.0, 4, 4], [4, 4.5, 4]]),
+    ({"max_anchors": 2}, [[4.0, 4.5, 4]]), ({"max_anchors_per_seed": 1.0}, [[4.0, 4.5, 4]]),
+    ({"max_anchors": 1, "max_anchors_per_seed": 1.5}, [])])
+def test_an_anchor_budget_keeps_the_largest_gradient_cells_that_fit_after_pruning(budget, grown):
+    # The level-1 cell's offset gradient (2 tau u) beats the level-0 cell's (1.05 tau); anchor 1 is
+    # pruned in the same adjustment, so a budget of 2 (absolute, or 1x the 2 seed anchors) leaves room
+    # for one new cell.
+    field = grow_prune_case(**budget)
+    field.densify(600)
+    assert field.last_densify["pruned"] == 1
+    torch.testing.assert_close(field.anchors.detach(), torch.tensor([[4.0, 4, 4], *grown]))
+    limit = field.config.densify.budget(2)
+    assert limit is None or int(field.drawn.sum()) <= limit
+
+
+def test_the_anchor_budget_is_the_smaller_of_the_count_and_the_multiple_of_the_seed_anchors():
+    assert DensifyConfig().budget(1000) is None
+    assert DensifyConfig(max_anchors=5000).budget(1000) == 5000
+    assert DensifyConfig(max_anchors_per_seed=3.0).budget(1000) == 3000
+    assert DensifyConfig(max_anchors=2500, max_anchors_per_seed=3.0).budget(1000) == 2500
 
 
 def test_densify_result_drives_optimizer_resize_and_resume():
