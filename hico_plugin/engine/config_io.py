@@ -45,11 +45,12 @@ _RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environmen
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
 # field gets the value that reproduces the run (its scene frame was not rotated, or rotated by the
 # cameras' mean up; its anchors were not kept nested, or its kept ancestors were drawn; its background was
-# a fixed colour), not today's default.
+# a fixed colour; its environment MLP ran at every pixel), not today's default.
 _ADDED_FIELDS = {
     "hico_plugin.data.parser.DataParserConfig": {"orient": False, "orient_method": "up"},
     "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False, "draw_ancestors": True},
     "hico_plugin.model.hico.HiCoModelConfig": {"learn_background": False, "background_start": "configured"},
+    "hico_plugin.model.effects.environment.EnvironmentConfig": {"stride": 1},
 }
 
 

@@ -121,7 +121,7 @@ def test_a_run_from_before_the_environment_was_renamed_still_loads(tmp_path):
         path.write_text("!dataclass:hico_plugin.model.hico.HiCoModelConfig\n"
                         f"sky: !dataclass:{home}.SkyConfig\n  hidden_dim: 16\n")
         loaded = load_config(path)
-        assert loaded.environment == EnvironmentConfig(hidden_dim=16) and loaded.learn_background is False
+        assert loaded.environment == EnvironmentConfig(hidden_dim=16, stride=1) and loaded.learn_background is False
 
 
 def test_parent_rule_is_an_enum_that_reads_and_writes_its_name(tmp_path):

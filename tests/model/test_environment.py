@@ -49,6 +49,25 @@ def test_environment_depends_on_direction_only():
     assert not torch.allclose(a, c)
 
 
+def test_a_strided_environment_interpolates_the_per_pixel_one_and_trains():
+    torch.manual_seed(0)
+    K = torch.tensor([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
+    camera = Camera(torch.eye(4), K, 320, 240)
+    per_pixel = EnvironmentConfig(stride=1).setup()
+    strided = EnvironmentConfig(stride=4).setup()
+    strided.load_state_dict(per_pixel.state_dict())
+    exact, image = per_pixel(camera), strided(camera)
+    assert image.shape == exact.shape == (240, 320, 3)
+    # Close to the per-pixel field, which varies slowly with the direction.
+    torch.testing.assert_close(image, exact, atol=2e-3, rtol=0)
+    # The MLP ran on the 80x60 camera: pixel 6 lies at coarse coordinate (6 + 0.5) / 4 - 0.5 = 1.125.
+    coarse = per_pixel(camera.scaled(0.25))
+    w = torch.tensor([0.875, 0.125])
+    torch.testing.assert_close(image[6, 6], torch.einsum("i,j,ijc->c", w, w, coarse[1:3, 1:3]))
+    image.sum().backward()
+    assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in strided.parameters())
+
+
 def test_model_composites_the_environment_only_where_alpha_leaves_room():
     dataset = DataSourceConfig(scene="tiny").setup()
     camera = dataset.cameras[int(dataset.train_indices[0])].scaled(0.5)
