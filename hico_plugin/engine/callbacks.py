@@ -180,6 +180,7 @@ class ProgressLines(TrainerCallback):
         self.clock = clock
         self._start = self._timing_start = self._last = 0.0
         self._first_step = 0
+        self._pixel_steps = lambda start, stop: float(stop - start)
 
     def _print(self, text: str) -> None:
         print(text, file=self.stream, flush=True)
@@ -187,6 +188,13 @@ class ProgressLines(TrainerCallback):
     def on_train_start(self, trainer: "Trainer", step: int) -> None:
         self._start = self._last = self.clock()
         self._first_step = step
+        if trainer is not None:
+            # Under the coarse-to-fine schedule a step costs in proportion to its pixels, so the time
+            # left is counted in full-resolution steps, not steps.
+            cameras = trainer.dataset.cameras
+            long_side = int(max(cameras.widths.max(), cameras.heights.max()))
+            schedule, max_steps = trainer.config.resolution, self.max_steps
+            self._pixel_steps = lambda start, stop: schedule.pixel_steps(start, stop, max_steps, long_side)
         self._print(f"train: {self.max_steps - step} steps to go; timing the first {self.timed_steps} for an estimate")
 
     def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
@@ -196,21 +204,27 @@ class ProgressLines(TrainerCallback):
             self._timing_start = now
         elif done == 1 + self.timed_steps:
             per_step = (now - self._timing_start) / self.timed_steps
-            remaining = per_step * (self.max_steps - step - 1)
+            remaining = per_step * self._left_over(self._first_step + 1, step + 1)
             scale = metrics.get("resolution_scale", 1.0)
-            coarse = f", images at {scale:.2f} of full size: later steps cost more" if scale < 1.0 else ""
+            coarse = (f", images at {scale:.2f} of full size, later steps counted by their pixels"
+                      if scale < 1.0 else "")
             self._print(f"train: expected wall time {_duration(now - self._start + remaining)} "
                         f"({per_step:.2f} s/step over steps 2-{done}{coarse}; {_duration(remaining)} left)")
         if now - self._last >= self.every_seconds or step + 1 == self.max_steps:
             self._last = now
             elapsed = now - self._start
-            left = elapsed / done * (self.max_steps - step - 1)
+            left = elapsed / done * self._left_over(self._first_step, step + 1)
             self._print(f"step {step + 1}/{self.max_steps}  {_duration(elapsed)} elapsed, ~{_duration(left)} left  "
                         f"{format_bar_metrics(metrics)}")
 
     def on_eval(self, step: int, results: dict[str, Any]) -> None:
         if results.get("psnr") is not None:
             self._print(f"step {step + 1}: test PSNR {results['psnr']:.2f} dB")
+
+    def _left_over(self, timed_from: int, next_step: int) -> float:
+        """Steps left after ``next_step - 1``, in units of the mean step of ``timed_from..next_step-1``."""
+        timed = self._pixel_steps(timed_from, next_step)
+        return self._pixel_steps(next_step, self.max_steps) * (next_step - timed_from) / max(timed, 1e-12)
 
 
 def _duration(seconds: float) -> str:

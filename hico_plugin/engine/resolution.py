@@ -58,6 +58,13 @@ class ResolutionSchedule:
         return min(1.0, math.floor(pixels**0.5 / _SCALE_QUANTUM + 1e-9) * _SCALE_QUANTUM)
 
 
+    def pixel_steps(self, start: int, stop: int, max_steps: int, long_side: int) -> float:
+        """Steps start..stop-1 counted in full-resolution steps (each weighs its scale squared, the
+        share of the pixels it draws): a step's time grows with its pixels, so the time left is
+        this times the time of a full-resolution step."""
+        return sum(self.scale(step, max_steps, long_side) ** 2 for step in range(start, stop))
+
+
 def downscale_batch(batch: TrainBatch, scale: float) -> TrainBatch:
     """``batch`` at ``scale`` times its resolution: images area-averaged (no aliasing), masks and
     ground-truth depth / normals sampled at the nearest pixel (averaging would invent depths across

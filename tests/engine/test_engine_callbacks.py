@@ -69,4 +69,33 @@ def test_progress_lines_print_the_expected_wall_time_from_the_first_steps():
     for step in range(10):
         now[0] += 2.0
         lines.on_step_end(step, {"loss": 0.5, "resolution_scale": 0.5})
-    assert "over steps 2-6, images at 0.50 of full size: later steps cost more;" in coarse.getvalue()
+    assert "over steps 2-6, images at 0.50 of full size, later steps counted by their pixels;" in coarse.getvalue()
+
+
+def test_under_the_resolution_schedule_the_time_left_is_counted_in_pixels():
+    """A step whose time follows its pixels (4 s at full size) is foreseen exactly from the first,
+    quarter-size steps; counted in steps, the estimate would be under half the run."""
+    import io
+    from types import SimpleNamespace
+
+    import torch
+
+    from hico_plugin.engine.callbacks import ProgressLines
+    from hico_plugin.engine.resolution import ResolutionSchedule
+
+    schedule = ResolutionSchedule(start_scale=0.5)
+    trainer = SimpleNamespace(config=SimpleNamespace(resolution=schedule), dataset=SimpleNamespace(
+        cameras=SimpleNamespace(widths=torch.tensor([960, 960]), heights=torch.tensor([540, 540]))))
+    cost = [4.0 * schedule.scale(step, 100, 960) ** 2 for step in range(100)]
+    now = [0.0]
+    out = io.StringIO()
+    lines = ProgressLines(max_steps=100, timed_steps=5, every_seconds=1e9, stream=out, clock=lambda: now[0])
+    lines.on_train_start(trainer, 0)
+    for step in range(100):
+        now[0] += cost[step]
+        lines.on_step_end(step, {"loss": 0.5, "resolution_scale": schedule.scale(step, 100, 960)})
+    total = sum(cost)  # 314 s, foreseen as 5:14 at step 6
+    expected = [line for line in out.getvalue().splitlines() if "expected wall time" in line][0]
+    assert f"expected wall time {int(total) // 60}:{round(total) % 60:02d} " in expected
+    assert schedule.pixel_steps(0, 100, 100, 960) == total / 4.0
+    assert ResolutionSchedule().pixel_steps(3, 10, 100, 960) == 7.0  # no schedule: every step full size
