@@ -57,7 +57,6 @@ class ResolutionSchedule:
         # Rounded down, so full resolution starts exactly at full_at (1e-9: 0.25 stays 4 quanta).
         return min(1.0, math.floor(pixels**0.5 / _SCALE_QUANTUM + 1e-9) * _SCALE_QUANTUM)
 
-
     def pixel_steps(self, start: int, stop: int, max_steps: int, long_side: int) -> float:
         """Steps start..stop-1 counted in full-resolution steps (each weighs its scale squared, the
         share of the pixels it draws): a step's time grows with its pixels, so the time left is

@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from torch import Tensor, nn
 
 from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
@@ -140,16 +139,6 @@ class EffectsReport:
 
     def present(self, name: str) -> bool:
         return name in self.effects and self.effects[name].present
-
-    def log2_gains(self, views: list[int]) -> np.ndarray:
-        """Measured per-channel log2 gains [len(views), 3] of those dataset views (NaN where a view
-        had too few shared observations): exposure plus white balance, mean zero over the photos."""
-        out = np.full((len(views), 3), np.nan)
-        for row, view in enumerate(views):
-            entry = self.per_image[view]
-            if entry["exposure_stops"] is not None:
-                out[row] = entry["exposure_stops"] + np.asarray(entry["white_balance_stops"])
-        return out
 
 
 def analyze_effects(dataset: Any, evidence: DatasetEvidence | None = None) -> EffectsReport:

@@ -11,7 +11,7 @@ cost every decoded Gaussian a wider MLP). Views that are not training photos (te
 without a transform: their exposure is unknown, which the colour-corrected metrics account for.
 
 Each transform starts from the photo's gains that the data analysis measured from shared sparse
-points (``EffectsReport.log2_gains``), not from identity: starting from identity, the scene learns
+points (``analysis.photo_gains``), not from identity: starting from identity, the scene learns
 the photos' disagreement in its first few hundred steps, faster than 12 numbers per photo move,
 and keeps part of it baked in.
 """
@@ -25,7 +25,7 @@ from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
 from hico_plugin.analysis.photo_gains import exposure_finding, photo_gains
 from hico_plugin.cameras import Camera
 from hico_plugin.engine.optimizers import ParamGroupOptimizerConfig
-from hico_plugin.model.effects.base import EFFECTS, Effect, EffectInputs, EffectsReport
+from hico_plugin.model.effects.base import EFFECTS, Effect, EffectInputs
 from hico_plugin.rasterizer import RenderOutputs
 
 
@@ -42,9 +42,8 @@ class ExposureEffect(Effect):
 
     def build(self, inputs: EffectInputs) -> "AffineColour":
         # measured once per evidence: the analysis's own gains, or measured here when every effect was forced
-        gains = EffectsReport({}, photo_gains(inputs.evidence)[1]).log2_gains(inputs.train_ids.tolist())
-        gains = torch.from_numpy(gains)
-        return AffineColour(len(inputs.train_ids), gains)
+        gains = photo_gains(inputs.evidence)[0][inputs.train_ids.numpy()]  # [C,3] log2, NaN = unknown
+        return AffineColour(len(inputs.train_ids), torch.from_numpy(gains))
 
     def default_lrs(self) -> dict[str, ParamGroupOptimizerConfig]:
         return {"exposure": ParamGroupOptimizerConfig(2e-3, 1e-4)}  # settles a 0.35-stop gain within a few hundred steps
