@@ -68,6 +68,25 @@ def test_fused_matches_torch_compositor_with_random_cotangents(tile_size, dtype,
         torch.testing.assert_close(a / scale, b / scale, atol=tol, rtol=0, msg=name)
 
 
+@pytest.mark.parametrize("tile_size", [4, 8, 16])
+@pytest.mark.parametrize("channels", [3, 4, 7, 8])
+def test_fused_float32_vector_loops_match_torch_compositor(tile_size, channels):
+    # float32 runs the kernel's vector loops (several pixels per instruction, a polynomial exp), one
+    # build per channel count it specialises (5 channels, above, takes the general one). A tile of 4
+    # pixels is narrower than a vector, so the lanes past the box run into the next pixel row.
+    inputs, bins = binned_scene(500, seed=channels, tile_size=tile_size)
+    inputs[3] = torch.rand(inputs[3].shape[0], channels, generator=torch.Generator().manual_seed(9))
+    assert fused_available(), fused_module.EXTENSION.error
+    want = outputs_and_grads(composite, inputs, bins)
+    got = outputs_and_grads(composite_fused, inputs, bins)
+    assert want[1].max() > 0.99  # deep enough that pixels stop early
+    torch.testing.assert_close(got[0], want[0], atol=2e-4, rtol=2e-4)
+    torch.testing.assert_close(got[1], want[1], atol=2e-4, rtol=2e-4)
+    for name, a, b in zip(("means2d", "conics", "opacities", "features"), got[2], want[2]):
+        scale = b.abs().max()
+        torch.testing.assert_close(a / scale, b / scale, atol=2e-4, rtol=0, msg=name)
+
+
 def test_fused_gradcheck_float64():
     inputs, bins = binned_scene(12, seed=5, tile_size=16, num_cams=1, dtype=torch.float64)
     # Opacities away from the 0.99 clamp and the 1/255 cut keep the function smooth at eps.
