@@ -187,14 +187,14 @@ def fused_available() -> bool:
 
 class _FusedComposite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, bins):
+    def forward(ctx, means2d, conics, opacities, features, bins, image_size):
         ext = EXTENSION.get()
         grid = (bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size)
         inputs = [t.contiguous() for t in (means2d, conics, opacities, features)]
         out, acc, final_t, n_drawn = ext.forward(*inputs, bins.gaussian_ids, bins.tile_offsets,
-                                                 *grid, ALPHA_MIN, ALPHA_MAX, T_MIN)
+                                                 *grid, ALPHA_MIN, ALPHA_MAX, T_MIN, *image_size)
         ctx.save_for_backward(*inputs, final_t, n_drawn)
-        ctx.bins, ctx.grid = bins, grid
+        ctx.bins, ctx.grid, ctx.image_size = bins, grid, image_size
         return out, acc
 
     @staticmethod
@@ -203,8 +203,9 @@ class _FusedComposite(torch.autograd.Function):
         bins = ctx.bins
         grads = EXTENSION.get().backward(
             means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_offsets, *ctx.grid,
-            ALPHA_MIN, ALPHA_MAX, final_t, n_drawn, grad_out.contiguous(), grad_acc.contiguous())
-        return (*grads, None)
+            ALPHA_MIN, ALPHA_MAX, final_t, n_drawn, grad_out.contiguous(), grad_acc.contiguous(),
+            *ctx.image_size)
+        return (*grads, None, None)
 
 
 def bin_gaussians_fused(means2d: Tensor, conics: Tensor, reach: Tensor, extents: Tensor,
@@ -226,8 +227,10 @@ def bin_gaussians_fused(means2d: Tensor, conics: Tensor, reach: Tensor, extents:
 
 
 def composite_fused(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                    bins: TileBins) -> tuple[Tensor, Tensor]:
+                    bins: TileBins, image_size: tuple[int, int] | None = None) -> tuple[Tensor, Tensor]:
     """means2d [G,2], conics [G,3], opacities [G], features [G,D] -> features [T,P,D], alpha [T,P]
-    (T tiles camera-major, P = tile_size^2 pixels row-major); CPU tensors, float32 or float64.
-    Differentiable w.r.t. the four inputs. Call ``fused_available()`` first."""
-    return _FusedComposite.apply(means2d, conics, opacities, features, bins)
+    (T tiles camera-major, P = tile_size^2 pixels row-major); with ``image_size`` = (width, height),
+    the cameras' images instead: features [C,H,W,D], alpha [C,H,W] (the tiles laid out as images and
+    cropped, written in place). CPU tensors, float32 or float64. Differentiable w.r.t. the four
+    inputs. Call ``fused_available()`` first."""
+    return _FusedComposite.apply(means2d, conics, opacities, features, bins, tuple(image_size or (0, 0)))

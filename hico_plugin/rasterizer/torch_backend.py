@@ -55,9 +55,9 @@ class TorchBackend(RasterizerBackend):
                 opacities[None].expand(num_cams, -1).reshape(-1),
                 features.reshape(num_cams * n, features.shape[-1]))
         if fused:
-            tiled, tiled_alpha = composite_fused(*flat, bins)
-        else:
-            tiled, tiled_alpha = composite(*flat, bins, use_compile=self.use_compile)
+            image, alpha = composite_fused(*flat, bins, image_size=(width, height))
+            return image, alpha[..., None]
+        tiled, tiled_alpha = composite(*flat, bins, use_compile=self.use_compile)
         image = _untile(torch.cat([tiled, tiled_alpha[..., None]], -1), num_cams, bins, width, height)
         return image[..., :-1], image[..., -1:]
 

@@ -10,7 +10,7 @@ from hico_plugin.rasterizer.composite import composite
 from hico_plugin.rasterizer.fused import bin_gaussians_fused, composite_fused, fused_available
 from hico_plugin.rasterizer.projection import project_gaussians
 from hico_plugin.rasterizer.gsplat_backend import GsplatBackend
-from hico_plugin.rasterizer.torch_backend import TorchBackend
+from hico_plugin.rasterizer.torch_backend import TorchBackend, _untile
 from hico_plugin.rasterizer.tiling import TileBins, bin_gaussians
 
 K = torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]])
@@ -85,6 +85,25 @@ def test_fused_float32_vector_loops_match_torch_compositor(tile_size, channels):
     for name, a, b in zip(("means2d", "conics", "opacities", "features"), got[2], want[2]):
         scale = b.abs().max()
         torch.testing.assert_close(a / scale, b / scale, atol=2e-4, rtol=0, msg=name)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_image_layout_is_the_tiles_cropped(dtype):
+    # 7 x 5 tiles of 10 pixels cover 70x50: the 64x48 images crop a column and a row of tiles.
+    inputs, bins = binned_scene(300, seed=4, tile_size=10, dtype=dtype)
+    assert fused_available(), fused_module.EXTENSION.error
+    by_tile = [t.detach().clone().requires_grad_() for t in inputs]
+    by_image = [t.detach().clone().requires_grad_() for t in inputs]
+    features, tile_alpha = composite_fused(*by_tile, bins)
+    tiled = _untile(torch.cat([features, tile_alpha[..., None]], -1), 2, bins, 64, 48)
+    image, alpha = composite_fused(*by_image, bins, image_size=(64, 48))
+    assert image.shape == (2, 48, 64, 5) and alpha.shape == (2, 48, 64)
+    assert torch.equal(image, tiled[..., :-1]) and torch.equal(alpha, tiled[..., -1])
+    cotangent = torch.randn(tiled.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    (tiled * cotangent).sum().backward()
+    ((image * cotangent[..., :-1]).sum() + (alpha * cotangent[..., -1]).sum()).backward()
+    for a, b in zip(by_image, by_tile):
+        assert torch.equal(a.grad, b.grad)
 
 
 def test_fused_gradcheck_float64():

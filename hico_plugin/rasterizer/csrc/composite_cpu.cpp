@@ -4,7 +4,8 @@
 //
 //   means2d [G,2], conics [G,3] (a, b, c of [[a,b],[b,c]]), opacities [G], features [G,D],
 //   gaussian_ids [I] int64 sorted by (tile, depth), tile_offsets [T+1] int64
-//   -> features [T,P,D], alpha [T,P], final transmittance [T,P], rows drawn per pixel [T,P] int32
+//   -> features [T,P,D], alpha [T,P] (or, given width and height, the images [C,H,W,D], [C,H,W]),
+//      final transmittance [T,P], rows drawn per pixel [T,P] int32
 //
 // A pair is skipped when sigma < 0 or alpha < alpha_min; alpha is clamped at alpha_max; a pixel stops
 // at the first pair whose transmittance after it would be <= t_min (that pair is not drawn).
@@ -106,6 +107,46 @@ struct Grid {
     const int64_t in_cam = t % tiles_per_cam;
     ox = (in_cam % tiles_x) * tile_size;
     oy = (in_cam / tiles_x) * tile_size;
+  }
+};
+
+// Where features and alpha are stored: by tile, [T,P,·] (width 0), or as the cameras' images
+// [C,H,W,·] cropped to width x height, so the renderer needs no tile-to-image copy (nor, backward,
+// the zero-filled uncropped image and the copy back into tiles). Transmittance and draw counts stay
+// by tile: only the backward reads them.
+struct Layout {
+  int64_t width, height;
+
+  // Flat pixel index of tile t's local pixel p, or -1 for a pixel past the image's edge.
+  int64_t index(const Grid& grid, int64_t t, int64_t p) const {
+    const int64_t ts = grid.tile_size;
+    if (width == 0) return t * ts * ts + p;
+    int64_t ox, oy;
+    grid.origin(t, ox, oy);
+    const int64_t x = ox + p % ts, y = oy + p / ts;
+    if (x >= width || y >= height) return -1;
+    return ((t / grid.tiles_per_cam) * height + y) * width + x;
+  }
+
+  // [T,P,D] by tile -> this layout (the float64 loops write by tile).
+  at::Tensor from_tiles(const at::Tensor& tiled, const Grid& grid) const {
+    if (width == 0) return tiled;
+    const int64_t ts = grid.tile_size, tiles_y = grid.tiles_per_cam / grid.tiles_x;
+    const int64_t cams = tiled.size(0) / grid.tiles_per_cam, dim = tiled.size(2);
+    return tiled.view({cams, tiles_y, grid.tiles_x, ts, ts, dim}).permute({0, 1, 3, 2, 4, 5})
+        .reshape({cams, tiles_y * ts, grid.tiles_x * ts, dim}).narrow(1, 0, height).narrow(2, 0, width)
+        .contiguous();
+  }
+
+  // This layout -> [T,P,D] by tile, zero past the image's edge (the inverse of from_tiles).
+  at::Tensor to_tiles(const at::Tensor& stored, const Grid& grid, int64_t num_tiles) const {
+    if (width == 0) return stored;
+    const int64_t ts = grid.tile_size, tiles_y = grid.tiles_per_cam / grid.tiles_x;
+    const int64_t cams = num_tiles / grid.tiles_per_cam, dim = stored.size(3);
+    auto full = at::zeros({cams, tiles_y * ts, grid.tiles_x * ts, dim}, stored.options());
+    full.narrow(1, 0, height).narrow(2, 0, width).copy_(stored);
+    return full.view({cams, tiles_y, ts, grid.tiles_x, ts, dim}).permute({0, 1, 3, 2, 4, 5})
+        .reshape({num_tiles, ts * ts, dim}).contiguous();
   }
 };
 
@@ -326,8 +367,8 @@ inline fvec exp8(fvec x) {
 }
 
 template <int kDim>
-void forward_simd(const Splats<float>& s, const Grid grid, float a_min, float a_max, float t_min,
-                  at::Tensor& out, at::Tensor& acc, at::Tensor& final_t, at::Tensor& n_drawn) {
+void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, float a_min, float a_max,
+                  float t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t, at::Tensor& n_drawn) {
   const int64_t ts = grid.tile_size, pixels = ts * ts, dim = kDim > 0 ? kDim : s.dim;
   const int64_t padded = pixels + kLanes;
   float* out_p = out.data_ptr<float>();
@@ -385,18 +426,19 @@ void forward_simd(const Splats<float>& s, const Grid grid, float a_min, float a_
         }
       }
     }
-    float* color_out = out_p + t * pixels * dim;
     for (int64_t p = 0; p < pixels; ++p) {
-      for (int64_t d = 0; d < dim; ++d) color_out[p * dim + d] = color[d * padded + p];
+      const int64_t at = layout.index(grid, t, p);
+      if (at < 0) continue;
+      for (int64_t d = 0; d < dim; ++d) out_p[at * dim + d] = color[d * padded + p];
+      acc_p[at] = weight[p];
     }
-    std::copy(weight.begin(), weight.begin() + pixels, acc_p + t * pixels);
     std::copy(trans.begin(), trans.begin() + pixels, t_p + t * pixels);
     std::copy(drawn.begin(), drawn.begin() + pixels, n_p + t * pixels);
   });
 }
 
 template <int kDim>
-void backward_simd(const Splats<float>& s, const Grid grid, float a_min, float a_max,
+void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout, float a_min, float a_max,
                    const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
                    const at::Tensor& grad_acc, at::Tensor& grads) {
   // As backward_impl; each row's gradient sums its pixels lane by lane, then the 8 lanes (a fixed
@@ -427,10 +469,12 @@ void backward_simd(const Splats<float>& s, const Grid grid, float a_min, float a
     std::vector<float> behind((dim + 1) * padded, 0.f);
     std::vector<int32_t> drawn(padded, 0);
     std::copy(t_p + t * pixels, t_p + (t + 1) * pixels, trans.begin());
-    std::copy(ga + t * pixels, ga + (t + 1) * pixels, g_alpha.begin());
     std::copy(drawn_t, drawn_t + pixels, drawn.begin());
-    for (int64_t p = 0; p < pixels; ++p) {
-      for (int64_t d = 0; d < dim; ++d) g_color[d * padded + p] = go[(t * pixels + p) * dim + d];
+    for (int64_t p = 0; p < pixels; ++p) {  // a pixel past the image's edge was cropped: gradient 0
+      const int64_t at = layout.index(grid, t, p);
+      if (at < 0) continue;
+      g_alpha[p] = ga[at];
+      for (int64_t d = 0; d < dim; ++d) g_color[d * padded + p] = go[at * dim + d];
     }
     std::vector<fvec> fr(dim), sums(stride);
     int64_t ox, oy;
@@ -528,23 +572,33 @@ std::vector<at::Tensor> forward(const at::Tensor& means2d, const at::Tensor& con
                                 const at::Tensor& opacities, const at::Tensor& features,
                                 const at::Tensor& gaussian_ids, const at::Tensor& tile_offsets,
                                 int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,
-                                double alpha_min, double alpha_max, double t_min) {
+                                double alpha_min, double alpha_max, double t_min, int64_t width,
+                                int64_t height) {
   check_inputs(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
-  const int64_t num_tiles = tile_offsets.size(0) - 1, pixels = tile_size * tile_size;
-  auto out = at::empty({num_tiles, pixels, features.size(1)}, features.options());
-  auto acc = at::empty({num_tiles, pixels}, features.options());
+  const int64_t num_tiles = tile_offsets.size(0) - 1, pixels = tile_size * tile_size, dim = features.size(1);
+  const Grid grid{tiles_x, tiles_per_cam, tile_size};
+  const Layout layout{width, height};
   auto final_t = at::empty({num_tiles, pixels}, features.options());
   auto n_drawn = at::empty({num_tiles, pixels}, features.options().dtype(at::kInt));
-  const Grid grid{tiles_x, tiles_per_cam, tile_size};
+  at::Tensor out, acc;
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_forward", [&] {
     const Splats<scalar_t> splats(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
     if constexpr (std::is_same_v<scalar_t, float>) {
-      with_channels(features.size(1), [&](auto channels) {
-        forward_simd<decltype(channels)::value>(splats, grid, alpha_min, alpha_max, t_min, out, acc, final_t,
-                                                n_drawn);
+      const int64_t cams = num_tiles / tiles_per_cam;
+      out = width ? at::empty({cams, height, width, dim}, features.options())
+                  : at::empty({num_tiles, pixels, dim}, features.options());
+      acc = width ? at::empty({cams, height, width}, features.options())
+                  : at::empty({num_tiles, pixels}, features.options());
+      with_channels(dim, [&](auto channels) {
+        forward_simd<decltype(channels)::value>(splats, grid, layout, alpha_min, alpha_max, t_min, out, acc,
+                                                final_t, n_drawn);
       });
     } else {
+      out = at::empty({num_tiles, pixels, dim}, features.options());
+      acc = at::empty({num_tiles, pixels}, features.options());
       forward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, t_min, out, acc, final_t, n_drawn);
+      out = layout.from_tiles(out, grid);
+      acc = layout.from_tiles(acc.unsqueeze(-1), grid).squeeze(-1);
     }
   });
   return {out, acc, final_t, n_drawn};
@@ -556,20 +610,24 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
                                  int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,
                                  double alpha_min, double alpha_max, const at::Tensor& final_t,
                                  const at::Tensor& n_drawn, const at::Tensor& grad_out,
-                                 const at::Tensor& grad_acc) {
+                                 const at::Tensor& grad_acc, int64_t width, int64_t height) {
   check_inputs(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
   TORCH_CHECK(grad_out.is_contiguous() && grad_acc.is_contiguous(), "composite_cpu: grads must be contiguous");
   auto grads = at::zeros({features.size(0), 6 + features.size(1)}, features.options());
   const Grid grid{tiles_x, tiles_per_cam, tile_size};
+  const Layout layout{width, height};
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_backward", [&] {
     const Splats<scalar_t> splats(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
     if constexpr (std::is_same_v<scalar_t, float>) {
       with_channels(features.size(1), [&](auto channels) {
-        backward_simd<decltype(channels)::value>(splats, grid, alpha_min, alpha_max, final_t, n_drawn, grad_out,
-                                                 grad_acc, grads);
+        backward_simd<decltype(channels)::value>(splats, grid, layout, alpha_min, alpha_max, final_t, n_drawn,
+                                                 grad_out, grad_acc, grads);
       });
     } else {
-      backward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, final_t, n_drawn, grad_out, grad_acc, grads);
+      const int64_t num_tiles = tile_offsets.size(0) - 1;
+      backward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, final_t, n_drawn,
+                              layout.to_tiles(grad_out, grid, num_tiles),
+                              layout.to_tiles(grad_acc.unsqueeze(-1), grid, num_tiles).squeeze(-1), grads);
     }
   });
   return {grads.slice(1, 0, 2), grads.slice(1, 2, 5), grads.select(1, 5), grads.slice(1, 6)};
