@@ -218,6 +218,20 @@ void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, sc
   });
 }
 
+// The backward's serial last pass: each tile's per-intersection row gradients (rows below the tile's
+// deepest drawn row) added to their Gaussians' in intersection order, whichever thread computed them.
+template <typename scalar_t>
+void add_row_grads(const Splats<scalar_t>& s, const std::vector<int32_t>& deepest_of,
+                   const std::vector<scalar_t>& row_grads, int64_t stride, scalar_t* g_all) {
+  for (int64_t t = 0; t < s.num_tiles; ++t) {
+    for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
+      scalar_t* dst = g_all + s.ids[i] * stride;
+      const scalar_t* src = &row_grads[i * stride];
+      for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
+    }
+  }
+}
+
 template <typename scalar_t>
 void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, scalar_t a_max,
                    const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
@@ -289,13 +303,7 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
       }
     }
   });
-  for (int64_t t = 0; t < s.num_tiles; ++t) {
-    for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
-      scalar_t* dst = g_all + s.ids[i] * stride;
-      const scalar_t* src = &row_grads[i * stride];
-      for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
-    }
-  }
+  add_row_grads(s, deepest_of, row_grads, stride, g_all);
 }
 
 // ----- float32: a vector of pixels at a time ---------------------------------------------------------
@@ -342,10 +350,15 @@ inline int32_t count(ivec m) {  // lanes set (a set lane is -1)
   return total;
 }
 inline fvec select(ivec m, fvec a, fvec b) { return m ? a : b; }
+inline ivec lane_numbers() {  // 0, 1, ..., kLanes - 1
+  ivec lanes;
+  for (int64_t i = 0; i < kLanes; ++i) lanes[i] = int32_t(i);
+  return lanes;
+}
 
 // e^x for x <= 0 (Cephes expf: x = n ln2 + r, a degree-6 polynomial in r, 2^n from the exponent bits).
 // Lanes below -87 or NaN give e^-87; their results are masked out by the callers.
-inline fvec exp8(fvec x) {
+inline fvec vexp(fvec x) {
   x = select(x > splat(-87.f), x, splat(-87.f));
   x = select(x < splat(0.f), x, splat(0.f));
   const fvec t = x * splat(1.44269504088896341f) + splat(0.5f);
@@ -375,10 +388,8 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
   float* acc_p = acc.data_ptr<float>();
   float* t_p = final_t.data_ptr<float>();
   int32_t* n_p = n_drawn.data_ptr<int32_t>();
-  fvec lane_f;
-  for (int64_t i = 0; i < kLanes; ++i) lane_f[i] = float(i);
-  ivec lane_i;
-  for (int64_t i = 0; i < kLanes; ++i) lane_i[i] = int32_t(i);
+  const ivec lane_i = lane_numbers();
+  const fvec lane_f = __builtin_convertvector(lane_i, fvec);
 
   for_each_tile(s.num_tiles, [&](int64_t t) {
     const int64_t count_rows = s.offsets[t + 1] - s.offsets[t];
@@ -403,7 +414,7 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
           ivec m = ((lane_i + int32_t(lx)) < int32_t(box.x1)) & (sigma >= splat(0.f)) & (sigma <= splat(cut)) &
                  ~vload(&stopped[p]);
           if (!any(m)) continue;
-          const fvec raw = splat(op) * exp8(-sigma);
+          const fvec raw = splat(op) * vexp(-sigma);
           const fvec alpha = select(raw < splat(a_max), raw, splat(a_max));
           m &= alpha >= splat(a_min);
           const fvec before = vload(&trans[p]);
@@ -441,7 +452,7 @@ template <int kDim>
 void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout, float a_min, float a_max,
                    const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
                    const at::Tensor& grad_acc, at::Tensor& grads) {
-  // As backward_impl; each row's gradient sums its pixels lane by lane, then the 8 lanes (a fixed
+  // As backward_impl; each row's gradient sums its pixels lane by lane, then the lanes (a fixed
   // order, so the result is still independent of threads and schedule).
   const int64_t ts = grid.tile_size, pixels = ts * ts, dim = kDim > 0 ? kDim : s.dim, stride = 6 + dim;
   const int64_t padded = pixels + kLanes;
@@ -452,10 +463,8 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
   const float* go = grad_out.data_ptr<float>();
   const float* ga = grad_acc.data_ptr<float>();
   float* g_all = grads.data_ptr<float>();
-  fvec lane_f;
-  for (int64_t i = 0; i < kLanes; ++i) lane_f[i] = float(i);
-  ivec lane_i;
-  for (int64_t i = 0; i < kLanes; ++i) lane_i[i] = int32_t(i);
+  const ivec lane_i = lane_numbers();
+  const fvec lane_f = __builtin_convertvector(lane_i, fvec);
   const fvec zero = splat(0.f), one = splat(1.f);
 
   for_each_tile(s.num_tiles, [&](int64_t t) {
@@ -497,7 +506,7 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
           const fvec sigma = splat(0.5f) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
           m &= (sigma >= zero) & (sigma <= splat(cut));
           if (!any(m)) continue;
-          const fvec falloff = exp8(-sigma);
+          const fvec falloff = vexp(-sigma);
           const fvec raw = splat(op) * falloff;
           const fvec alpha = select(raw < splat(a_max), raw, splat(a_max));
           m &= alpha >= splat(a_min);
@@ -535,13 +544,7 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
       }
     }
   });
-  for (int64_t t = 0; t < s.num_tiles; ++t) {
-    for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
-      float* dst = g_all + s.ids[i] * stride;
-      const float* src = &row_grads[i * stride];
-      for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
-    }
-  }
+  add_row_grads(s, deepest_of, row_grads, stride, g_all);
 }
 
 // Calls fn with std::integral_constant<int, D> for the channel counts the renderer packs (rgb 3;
