@@ -15,6 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from hico_plugin.rasterizer.fused import EXTENSION
 from hico_plugin.scenes.ring_dataset import write_ring_dataset
 
 ENV = {**os.environ, "HICO_NO_FUSED": os.environ.get("HICO_NO_FUSED", "1")}
@@ -70,8 +71,9 @@ def main(work: Path) -> None:
 
     kernels = work / "kernels"
     shutil.rmtree(kernels, ignore_errors=True)
-    kernels.mkdir()
-    (kernels / "lock").write_text("")
+    stale = kernels / EXTENSION.build_dir().name  # the compositor's build folder under HICO_KERNEL_DIR
+    stale.mkdir(parents=True)
+    (stale / "lock").write_text("")
     render = ("import torch\nfrom hico_plugin.rasterizer import rasterize\n"
               "out = rasterize(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1),"
               " torch.ones(1), torch.ones(1, 3), torch.eye(4), torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]]),"

@@ -133,9 +133,8 @@ def test_fused_result_is_bitwise_independent_of_threads():
 
 def test_unbuildable_fused_compositor(monkeypatch):
     """auto falls back to the torch compositor (and its tile size); an explicit 'fused' is one error."""
-    monkeypatch.setattr(fused_module, "EXTENSION", fused_module._Extension())
+    monkeypatch.setattr(fused_module.EXTENSION, "module", None)
     monkeypatch.setattr(fused_module.EXTENSION, "error", "no C++ compiler")
-    monkeypatch.setattr("hico_plugin.rasterizer.torch_backend.EXTENSION", fused_module.EXTENSION)
     assert TorchBackend(compositor="auto").default_tile_size(torch.device("cpu")) == 4
     means = torch.tensor([[0.0, 0.0, 2.0]])
     args = (means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1), torch.ones(1),
@@ -180,14 +179,15 @@ def test_fused_binning_of_nothing():
 
 
 def test_build_dir_is_private_to_version_torch_source_and_flags(monkeypatch, tmp_path):
-    name = fused_module.build_dir().name
-    assert name.startswith("hico-0.") and torch.__version__.replace("+", "-") in name
-    monkeypatch.setattr(fused_module, "BUILD_FLAGS", {**fused_module.BUILD_FLAGS, "extra_cflags": ["-O2"]})
-    other_flags = fused_module.build_dir().name
+    kernel = fused_module.EXTENSION
+    name = kernel.build_dir().name
+    assert name.startswith("hico_composite_cpu-0.") and torch.__version__.replace("+", "-") in name
+    monkeypatch.setattr(kernel, "flags", ["-O2"])
+    other_flags = kernel.build_dir().name
     edited = tmp_path / "composite_cpu.cpp"
-    edited.write_bytes(fused_module.SOURCE.read_bytes() + b"\n")
-    monkeypatch.setattr(fused_module, "SOURCE", edited)
-    other_source = fused_module.build_dir().name
+    edited.write_bytes(kernel.source.read_bytes() + b"\n")
+    monkeypatch.setattr(kernel, "source", edited)
+    other_source = kernel.build_dir().name
     assert len({name, other_flags, other_source}) == 3
 
 
@@ -200,8 +200,9 @@ def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
     import sys
 
     assert fused_available(), fused_module.EXTENSION.error
-    kernel_dir = tmp_path / "kernels"
-    shutil.copytree(fused_module.build_dir(), kernel_dir, ignore=shutil.ignore_patterns("lock", "hico-build.lock"))
+    built = fused_module.EXTENSION.build_dir()
+    kernel_dir = tmp_path / "kernels" / built.name
+    shutil.copytree(built, kernel_dir, ignore=shutil.ignore_patterns("lock", "hico-build.lock"))
     (kernel_dir / "lock").write_text("")  # the leftover of a killed build
     script = (
         "import torch\n"
@@ -211,7 +212,7 @@ def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
         " 64, 48, compositor='fused', use_compile=False)\n"
         "print('rendered', float(out.rgb.max()))\n"
     )
-    env = {**os.environ, "HICO_KERNEL_DIR": str(kernel_dir)}
+    env = {**os.environ, "HICO_KERNEL_DIR": str(kernel_dir.parent)}
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
     assert done.returncode == 0, done.stderr
     assert "rendered" in done.stdout and "removing the stale kernel build lock" in done.stderr
@@ -256,7 +257,8 @@ def test_hung_kernel_build_is_killed_and_a_render_finishes(tmp_path):
     while status.is_file() and "State:\tZ" not in status.read_text() and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not status.is_file() or "State:\tZ" in status.read_text()
-    assert not (tmp_path / "kernels" / "lock").exists() and not (tmp_path / "kernels" / "hico-built").exists()
+    left = {path.name for path in (tmp_path / "kernels").rglob("*")}
+    assert "lock" not in left and "hico-built" not in left
 
 
 def _conic(cov):
