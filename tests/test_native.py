@@ -1,0 +1,59 @@
+"""NativeKernel's plain-library path: built once into a private folder, loaded with ctypes; a source that
+does not compile makes the kernel unavailable with one line, not an exception."""
+
+import ctypes
+
+import pytest
+
+import torch
+
+from hico_plugin.native import NativeKernel, pointer
+
+SOURCE = """
+#include <cstdint>
+extern "C" void add_one(float* x, int64_t n, int threads) {
+#pragma omp parallel for num_threads(threads)
+  for (int64_t i = 0; i < n; ++i) x[i] += 1.0f;
+}
+"""
+
+
+def test_plain_library_builds_once_and_runs(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.delenv("HICO_NO_FUSED", raising=False)
+    source = tmp_path / "add_one.cpp"
+    source.write_text(SOURCE)
+    kernel = NativeKernel("hico_test_add_one", source, "test kernel", "nothing")
+    lib = kernel.get()
+    assert lib is not None, kernel.error
+    x = torch.zeros(5)
+    lib.add_one(pointer(x), ctypes.c_int64(5), 2)
+    assert torch.equal(x, torch.ones(5))
+    folder = kernel.build_dir()
+    assert folder.parent == tmp_path / "kernels" and (folder / "hico-built").read_text() == "hico_test_add_one.so"
+    assert not list(folder.glob("*.tmp"))
+    again = NativeKernel("hico_test_add_one", source, "test kernel", "nothing")
+    assert again.get() is not None and capsys.readouterr().err == ""  # built once, nothing said
+
+
+def test_source_that_does_not_compile_is_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.delenv("HICO_NO_FUSED", raising=False)
+    source = tmp_path / "broken.cpp"
+    source.write_text("this is not C++\n")
+    kernel = NativeKernel("hico_test_broken", source, "test kernel", "the torch twin")
+    assert kernel.get() is None and not kernel.available()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hico: the test kernel could not be built, using the torch twin: ")
+    assert not (kernel.build_dir() / "hico-built").exists()
+
+
+def test_no_fused_turns_every_kernel_off(tmp_path, monkeypatch):
+    monkeypatch.setenv("HICO_NO_FUSED", "1")
+    kernel = NativeKernel("hico_test_off", tmp_path / "never_read.cpp", "test kernel", "nothing")
+    assert kernel.get() is None and kernel.error == "disabled by HICO_NO_FUSED=1"
+
+
+def test_pointer_refuses_non_contiguous():
+    with pytest.raises(ValueError, match="contiguous CPU"):
+        pointer(torch.zeros(4, 4).t())
