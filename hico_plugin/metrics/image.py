@@ -8,6 +8,7 @@ from torch import Tensor
 
 from hico_plugin.errors import HicoError
 from hico_plugin.metrics.lpips_net import lpips
+from hico_plugin.metrics.ssim_fused import ssim_fused, ssim_fused_available
 
 
 def _as_batch(pred: Tensor, target: Tensor, name: str) -> tuple[Tensor, Tensor, bool]:
@@ -40,14 +41,22 @@ def ssim(pred: Tensor, target: Tensor) -> Tensor:
     """Structural similarity (pytorch-msssim; 11x11 Gaussian window, sigma 1.5, K = (0.01, 0.03)).
 
     pred, target: [H, W, C] or [B, H, W, C] in [0, 1]. Returns [] (or [B]). Differentiable, so the
-    photometric loss uses it too. pytorch-msssim filters with 'valid' borders where the 3DGS reference
+    photometric loss uses it too. float32 / float64 CPU images whose target needs no gradient go through
+    the fused C++ kernel ``ssim_fused`` (pytorch-msssim's values and gradient w.r.t. pred, to float
+    rounding, in one pass each way); the rest, or everything when the kernel cannot be built, through
+    pytorch-msssim itself. pytorch-msssim filters with 'valid' borders where the 3DGS reference
     zero-pads; the two differ only in a window-wide band at the image border.
     """
     pred_b, target_b, batched = _as_batch(pred, target, "ssim")
-    values = pytorch_msssim.ssim(
-        pred_b.permute(0, 3, 1, 2), target_b.permute(0, 3, 1, 2), data_range=1.0, size_average=False,
-        win_size=11, win_sigma=1.5,
-    )
+    fused = (pred_b.device.type == "cpu" and pred_b.dtype in (torch.float32, torch.float64)
+             and not target_b.requires_grad and ssim_fused_available())
+    if fused:
+        values = ssim_fused(pred_b, target_b)
+    else:
+        values = pytorch_msssim.ssim(
+            pred_b.permute(0, 3, 1, 2), target_b.permute(0, 3, 1, 2), data_range=1.0, size_average=False,
+            win_size=11, win_sigma=1.5,
+        )
     return values if batched else values[0]
 
 
