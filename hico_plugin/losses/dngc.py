@@ -18,6 +18,7 @@ Readings taken where the paper is silent:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
 
 import torch
 from torch import Tensor
@@ -27,6 +28,15 @@ from hico_plugin.losses.base import LOSSES, LossConfig, require_images
 from hico_plugin.rasterizer.base import RenderOutputs
 
 NORMAL_EPS = 1e-8  # a normal shorter than this is "undefined"
+KERNELS = ("auto", "fused", "torch")
+"""Values of ``DNGCLossConfig.kernel``."""
+
+
+def _fused() -> ModuleType:
+    """``losses.dngc_fused``, the fused twin of the terms below (imported on use: it reads NORMAL_EPS here)."""
+    from hico_plugin.losses import dngc_fused
+
+    return dngc_fused
 
 
 def warmup_weight(step: int, start_step: int, warmup_steps: int) -> float:
@@ -124,13 +134,19 @@ class DNGCLoss:
     def required_outputs(self, step: int) -> set[str]:
         return set(self.OUTPUTS) if self.warmup(step) > 0 else set()
 
+    def terms(self, *images: Tensor) -> dict[str, Tensor]:
+        """``dngc_losses(rgb, alpha, normal, depth_normal, distance, edge_beta)``, by the fused kernel when
+        ``kernel`` allows it, it takes these images (CPU, float32/float64) and it is built."""
+        fused = _fused()
+        use_fused = self.config.kernel != "torch" and fused.dngc_fused_accepts(*images) and fused.dngc_fused_available()
+        return (fused.dngc_terms_fused if use_fused else dngc_losses)(*images, self.config.edge_beta)
+
     def __call__(self, outputs: RenderOutputs, target: Tensor, step: int) -> dict[str, Tensor]:
         ramp = self.warmup(step)
         if ramp <= 0:
             return {}
         images = require_images(outputs, set(self.OUTPUTS), "dngc")
-        terms = dngc_losses(images["rgb"], images["alpha"], images["normal"], images["depth_normal"],
-                            images["distance"], self.config.edge_beta)
+        terms = self.terms(images["rgb"], images["alpha"], images["normal"], images["depth_normal"], images["distance"])
         lambdas = {"nc": self.config.lambda_nc, "ns": self.config.lambda_ns, "ds": self.config.lambda_ds}
         return {f"dngc_{name}": ramp * lambdas[name] * value for name, value in terms.items() if lambdas[name] != 0}
 
@@ -156,6 +172,10 @@ class DNGCLossConfig(LossConfig):
     warmup_steps: int = 10_000
     """T: steps of the linear ramp from 0 to full weight after t0 (0 = switch on at once), in reference
     steps."""
+    kernel: str = "auto"
+    """How the terms are computed: "auto" (the fused C++ kernel, built on first use, for CPU float32/float64
+    renders when it builds, else torch), "fused" (the same, and an error at setup when it cannot be built)
+    or "torch" (the reference torch ops, any device)."""
 
     def setup(self, schedule_scale: float = 1.0, **kwargs) -> DNGCLoss:
         for name in ("lambda_nc", "lambda_ns", "lambda_ds", "edge_beta"):
@@ -163,5 +183,10 @@ class DNGCLossConfig(LossConfig):
                 raise HicoError(f"losses.dngc.{name} must be >= 0, got {getattr(self, name)}")
         if self.start_step < 0 or self.warmup_steps < 0:
             raise HicoError("losses.dngc.start_step and losses.dngc.warmup_steps must be >= 0")
+        if self.kernel not in KERNELS:
+            raise HicoError(f"losses.dngc.kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
+        if self.kernel == "fused" and not _fused().dngc_fused_available():
+            raise HicoError(f"losses.dngc.kernel='fused' but the fused CPU DNGC kernel could not be built "
+                            f"({_fused().KERNEL.error}); install a C++ compiler or use 'auto' or 'torch'")
         return DNGCLoss(self, int(round(self.start_step * schedule_scale)),
                         int(round(self.warmup_steps * schedule_scale)))
