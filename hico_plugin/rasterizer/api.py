@@ -13,6 +13,8 @@ from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer.base import (
     COMPOSITOR, DEPTH_NORMAL_SOURCES, FAR, NEAR, OUTPUT_NAMES, RASTERIZER_BACKENDS, RasterizerBackend,
     RenderOutputs)
+from hico_plugin.rasterizer.depth_normal_fused import (
+    depth_normal_from_plane, depth_normal_fused_accepts, depth_normal_fused_available)
 from hico_plugin.rasterizer.geometry import depth_to_normal, expected_depth, gaussian_normals, plane_depth
 
 
@@ -61,7 +63,8 @@ def rasterize(
     maps = dict(zip(("rgb", "normal", "distance", "z"), image.split(sizes, -1)))
 
     result = RenderOutputs(means2d=means2d_out, radii=projected.radii if batched else projected.radii[0])
-    _derive_maps(result, maps, alpha, outputs, background, colors, Ks, depth_normal_from)
+    _derive_maps(result, maps, alpha, outputs, background, colors, Ks, depth_normal_from,
+                 backend.uses_fused_kernels(means.device))
     if not batched:
         for name, rendered in result.images().items():
             setattr(result, name, rendered[0])
@@ -91,8 +94,10 @@ def _pack_channels(colors: Tensor, quats: Tensor, scales: Tensor, viewmats: Tens
 
 
 def _derive_maps(result: RenderOutputs, maps: dict[str, Tensor], alpha: Tensor, outputs: frozenset[str],
-                 background: Optional[Tensor], colors: Tensor, Ks: Tensor, depth_normal_from: str) -> None:
-    """Fill ``result`` with the asked images from the composited channel ``maps`` ([C,H,W,·])."""
+                 background: Optional[Tensor], colors: Tensor, Ks: Tensor, depth_normal_from: str,
+                 fused: bool) -> None:
+    """Fill ``result`` with the asked images from the composited channel ``maps`` ([C,H,W,·]); ``fused``:
+    the render ran the fused CPU kernels, so the depth normal of the plane depth may too."""
     if "rgb" in outputs:
         bg = background if background is not None else colors.new_zeros(colors.shape[1])
         result.rgb = maps["rgb"] + (1.0 - alpha) * bg
@@ -105,12 +110,17 @@ def _derive_maps(result: RenderOutputs, maps: dict[str, Tensor], alpha: Tensor, 
         result.normal = maps["normal"]
     if "distance" in outputs:
         result.distance = maps["distance"]
-    has_plane = maps["normal"].shape[-1] and maps["distance"].shape[-1]
-    planar = plane_depth(maps["normal"], maps["distance"], alpha, Ks) if has_plane else None
     if "plane_depth" in outputs:
-        result.plane_depth = planar
-    if "depth_normal" in outputs:
-        result.depth_normal = depth_to_normal(planar if depth_normal_from == "plane_depth" else depth, Ks)
+        result.plane_depth = plane_depth(maps["normal"], maps["distance"], alpha, Ks)
+    if "depth_normal" in outputs and depth_normal_from == "depth":
+        result.depth_normal = depth_to_normal(depth, Ks)
+    elif "depth_normal" in outputs:
+        planes = (maps["normal"], maps["distance"], alpha, Ks)
+        if fused and depth_normal_fused_accepts(*planes) and depth_normal_fused_available():
+            result.depth_normal = depth_normal_from_plane(*planes)
+        else:
+            planar = result.plane_depth if result.plane_depth is not None else plane_depth(*planes)
+            result.depth_normal = depth_to_normal(planar, Ks)
 
 
 def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs,

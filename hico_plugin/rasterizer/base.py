@@ -73,6 +73,11 @@ class RasterizerBackend:
         """The tile edge used when none is given (tile_size 0)."""
         return TILE_SIZE
 
+    def uses_fused_kernels(self, device: torch.device) -> bool:
+        """Whether renders on ``device`` run the package's fused CPU kernels, and so should the maps that
+        ``rasterize`` derives from them (the depth normal)."""
+        return False
+
 
 RASTERIZER_BACKENDS: Registry[type[RasterizerBackend]] = Registry("rasterizer backend")
 

@@ -64,6 +64,9 @@ class TorchBackend(RasterizerBackend):
     def default_tile_size(self, device: torch.device) -> int:
         return TILE_SIZE if use_fused(self.compositor, device) else TORCH_COMPOSITOR_TILE_SIZE
 
+    def uses_fused_kernels(self, device: torch.device) -> bool:
+        return use_fused(self.compositor, device)
+
 
 def _untile(tiled: Tensor, num_cams: int, bins: TileBins, width: int, height: int) -> Tensor:
     """[T,P,D] tiles (camera-major, row-major) -> [C,H,W,D] images, cropped to the image size."""
