@@ -8,8 +8,9 @@ import torch
 
 from hico_plugin.errors import HicoError
 from hico_plugin.losses import DNGCLossConfig, dngc_fused, dngc_losses
-from hico_plugin.losses.dngc_fused import KERNEL, dngc_fused_available, dngc_terms_fused
+from hico_plugin.losses.dngc_fused import KERNEL, dngc_terms_fused
 from hico_plugin.rasterizer.base import RenderOutputs
+from helpers_native import require_kernel
 
 # Relative tolerances: float32 and float64 rounding of different operation and summation orders.
 TOL = {torch.float32: 2e-5, torch.float64: 1e-12}
@@ -20,8 +21,7 @@ UPSTREAM = {"nc": 1.3, "ns": -0.7, "ds": 2.1}  # distinct upstream gradients, so
 
 @pytest.fixture(autouse=True)
 def _kernel():
-    if not dngc_fused_available():
-        pytest.skip(f"the fused DNGC kernel could not be built: {KERNEL.error}")
+    require_kernel(KERNEL)
 
 
 def random_images(shape, dtype=torch.float64, seed=0, undefined=0.0):

@@ -10,7 +10,8 @@ import torch
 
 from hico_plugin.losses.photometric import photometric_terms
 from hico_plugin.metrics import image
-from hico_plugin.metrics.ssim_fused import KERNEL, gaussian_window, ssim_fused, ssim_fused_available
+from hico_plugin.metrics.ssim_fused import KERNEL, gaussian_window, ssim_fused
+from helpers_native import require_kernel
 
 # Relative tolerances: float32 and float64 rounding of two different summation orders.
 TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
@@ -19,8 +20,7 @@ SIZES = [(11, 11), (12, 30), (64, 48), (97, 203)]
 
 @pytest.fixture(autouse=True)
 def _kernel():
-    if not ssim_fused_available():
-        pytest.skip(f"the fused SSIM kernel could not be built: {KERNEL.error}")
+    require_kernel(KERNEL)
 
 
 def reference_ssim(pred, target):

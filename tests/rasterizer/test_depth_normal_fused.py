@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from hico_plugin.rasterizer import api, rasterize
-from hico_plugin.rasterizer.depth_normal_fused import KERNEL, depth_normal_from_plane, depth_normal_fused_available
+from hico_plugin.rasterizer.depth_normal_fused import KERNEL, depth_normal_from_plane
 from hico_plugin.rasterizer.geometry import ALPHA_EPS, depth_to_normal, pixel_rays, plane_depth
+from helpers_native import require_kernel
 
 # Relative to the largest magnitude of each compared tensor: rounding of reductions torch orders its own way.
 TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
@@ -16,8 +17,7 @@ TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
 
 @pytest.fixture(autouse=True)
 def _kernel():
-    if not depth_normal_fused_available():
-        pytest.skip(f"the fused depth-normal kernel could not be built: {KERNEL.error}")
+    require_kernel(KERNEL)
 
 
 def reference(normal, distance, alpha, Ks):
