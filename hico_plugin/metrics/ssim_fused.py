@@ -50,9 +50,11 @@ def ssim_fused_available() -> bool:
     return _library() is not None
 
 
+@cache
 def gaussian_window() -> Tensor:
     """pytorch-msssim's 1-D window, made as it makes it (float32, centred on tap size // 2, summing to 1),
-    so that float64 results agree with it to rounding: [WIN_SIZE]."""
+    so that float64 results agree with it to rounding: [WIN_SIZE]. Made once: every training step asks
+    for it, and the kernel only reads it."""
     offsets = torch.arange(WIN_SIZE, dtype=torch.float32) - WIN_SIZE // 2
     weights = torch.exp(-offsets**2 / (2 * WIN_SIGMA**2))
     return weights / weights.sum()
