@@ -20,7 +20,7 @@ from hico_plugin.engine.trainer import TrainerConfig
 from hico_plugin.losses import with_every_loss
 from hico_plugin.model.hico import HiCoModelConfig
 from hico_plugin.registry import load_plugins
-from hico_plugin.viewer.viewer import ViewerConfig
+from hico_plugin.viewer.config import ViewerConfig
 
 
 @dataclass

@@ -39,7 +39,8 @@ _ENUM_TAG = "!enum:"
 _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a {name: LossConfig} mapping
 # Config classes that moved to another module: the path older config.yml files name -> today's.
 _MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig",
-          "hico_plugin.model.effects.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig"}
+          "hico_plugin.model.effects.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig",
+          "hico_plugin.viewer.viewer.ViewerConfig": "hico_plugin.viewer.config.ViewerConfig"}
 # Fields renamed since runs were trained: class -> {the name older config.yml files use: today's}.
 _RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environment"}}
 # Fields added after runs were trained, whose default changes what such a run means: a file without the

@@ -16,31 +16,24 @@ Wiring into training (rank 0; the model implements ViewableModel)::
     trainer.train(); viewer.stop()
 """
 
-from hico_plugin.viewer.conversions import camera_to_viser, render_size, viser_to_camera
-from hico_plugin.viewer.state import (
-    RenderFn,
-    RunViewerState,
-    TrainingCameras,
-    ViewableModel,
-    ViewerState,
-    model_render_fn,
-)
-from hico_plugin.viewer.throttle import next_resolution, plan_render
-from hico_plugin.viewer.viewer import Viewer, ViewerConfig, attach_viewer
+import importlib
+from typing import Any
 
-__all__ = [
-    "RenderFn",
-    "RunViewerState",
-    "TrainingCameras",
-    "ViewableModel",
-    "Viewer",
-    "ViewerConfig",
-    "ViewerState",
-    "attach_viewer",
-    "camera_to_viser",
-    "model_render_fn",
-    "next_resolution",
-    "plan_render",
-    "render_size",
-    "viser_to_camera",
-]
+# Each public name and the module that defines it. They are imported on first use (PEP 562), so
+# ``hico_plugin.viewer.config`` -- what a training config holds -- loads without viser.
+_WHERE = {
+    "camera_to_viser": "conversions", "render_size": "conversions", "viser_to_camera": "conversions",
+    "RenderFn": "state", "RunViewerState": "state", "TrainingCameras": "state", "ViewableModel": "state",
+    "ViewerState": "state", "model_render_fn": "state",
+    "next_resolution": "throttle", "plan_render": "throttle",
+    "ViewerConfig": "config",
+    "Viewer": "viewer", "attach_viewer": "viewer",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
