@@ -42,6 +42,9 @@ BUILD_WAIT_SECONDS = BUILD_TIMEOUT_SECONDS + 60.0
 """How long to wait for another process's build before using the torch twin: longer than that
 builder's own bound, so a waiter does not give up on a build that is about to finish."""
 BUILT_MARKER = "hico-built"
+INCLUDE_DIR = Path(__file__).parent / "csrc"
+"""Headers shared by the kernels (``#include "name.h"``); every build gets it as an include path, and
+its headers' bytes are part of every build folder's key, so a changed header never reuses a stale build."""
 """Written into the build folder once a build finished: the name of the module file to load."""
 
 # Run by the child process: torch's loader compiles (or finds up to date) and imports the module.
@@ -107,6 +110,8 @@ class NativeKernel:
         from hico_plugin import __version__
 
         digest = hashlib.sha256(self.source.read_bytes() + repr((self.loader, self.flags)).encode())
+        for header in sorted(INCLUDE_DIR.glob("*.h")):
+            digest.update(header.name.encode() + header.read_bytes())
         key = f"{self.name}-{__version__}_torch-{torch.__version__}_{digest.hexdigest()[:12]}".replace("+", "-")
         root = os.environ.get("HICO_KERNEL_DIR")
         if root:
@@ -155,11 +160,12 @@ class NativeKernel:
         """The build command and, for a plain library, the file it writes."""
         if self.loader == "torch":
             args = {"name": self.name, "sources": [str(self.source)], "build_directory": str(folder),
-                    "extra_cflags": self.flags, "extra_ldflags": ["-fopenmp"]}
+                    "extra_cflags": self.flags, "extra_ldflags": ["-fopenmp"],
+                    "extra_include_paths": [str(INCLUDE_DIR)]}
             return [sys.executable, "-c", _TORCH_BUILD_SCRIPT, json.dumps(args)], None
         library = folder / f"{self.name}.so"
         compiler = os.environ.get("CXX", "c++")
-        return [compiler, *self.flags, "-fPIC", "-shared", "-std=c++17", str(self.source), "-o",
+        return [compiler, *self.flags, f"-I{INCLUDE_DIR}", "-fPIC", "-shared", "-std=c++17", str(self.source), "-o",
                 str(library.with_suffix(".so.tmp"))], library
 
     def _build_in_child(self, folder: Path) -> str:

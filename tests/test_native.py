@@ -7,6 +7,7 @@ import pytest
 
 import torch
 
+import hico_plugin.native as native
 from hico_plugin.native import NativeKernel, pointer
 
 SOURCE = """
@@ -46,6 +47,29 @@ def test_source_that_does_not_compile_is_one_line(tmp_path, monkeypatch, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hico: the test kernel could not be built, using the torch twin: ")
     assert not (kernel.build_dir() / "hico-built").exists()
+
+
+def test_a_kernel_includes_the_shared_headers_and_a_changed_header_means_a_new_build(tmp_path, monkeypatch):
+    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.delenv("HICO_NO_FUSED", raising=False)
+    monkeypatch.setattr(native, "INCLUDE_DIR", tmp_path / "include")
+    (tmp_path / "include").mkdir()
+    header = tmp_path / "include" / "offset.h"
+    header.write_text("constexpr float kOffset = 1.0f;\n")
+    source = tmp_path / "add_offset.cpp"
+    source.write_text('#include <cstdint>\n#include "offset.h"\n'
+                      'extern "C" void add_offset(float* x, int64_t n) { for (int64_t i = 0; i < n; ++i) x[i] += kOffset; }\n')
+    results = []
+    for offset in ("1.0f", "2.0f"):
+        header.write_text(f"constexpr float kOffset = {offset};\n")
+        kernel = NativeKernel("hico_test_add_offset", source, "test kernel", "nothing")
+        lib = kernel.get()
+        assert lib is not None, kernel.error
+        x = torch.zeros(3)
+        lib.add_offset(pointer(x), ctypes.c_int64(3))
+        results.append((kernel.build_dir(), float(x[0])))
+    (first_dir, first), (second_dir, second) = results
+    assert first_dir != second_dir and (first, second) == (1.0, 2.0)
 
 
 def test_no_fused_turns_every_kernel_off(tmp_path, monkeypatch):

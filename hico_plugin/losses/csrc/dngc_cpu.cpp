@@ -26,6 +26,8 @@
 #include <cstring>
 #include <vector>
 
+#include "expf_cephes.h"
+
 namespace {
 
 constexpr int64_t kRowBlock = 32;  // rows per task: enough tasks to balance two threads on one image
@@ -102,10 +104,10 @@ void through_unit(const T* __restrict u, const T* __restrict ok, const T* __rest
   }
 }
 
-// In place e = exp(e). libm's exp is a call GCC does not vectorise, so float takes Cephes' expf, which
-// loops vectorise: e^x = 2^n e^r, n = round(x / ln 2), r = x - n ln 2 (Cody-Waite, in two parts), e^r by a
-// polynomial; about 1 ulp, as torch's own vectorised exp. At or below -87.34 (denormal results) it gives
-// 0. Double (the reference precision, used by tests) keeps libm.
+// In place e = exp(e). libm's exp is a call GCC does not vectorise, so float takes Cephes' expf
+// (expf_cephes.h), which loops vectorise; about 1 ulp, as torch's own vectorised exp. n is rounded to
+// nearest by adding and subtracting 1.5 * 2^23. At or below -87.34 (denormal results) it gives 0. Double
+// (the reference precision, used by tests) keeps libm.
 inline void exp_row(double* e, int64_t n) {
   for (int64_t k = 0; k < n; ++k) e[k] = std::exp(e[k]);
 }
@@ -122,14 +124,7 @@ inline void exp_row(float* __restrict e, int64_t n) {
   for (int64_t k = 0; k < n; ++k) {
     const float x = e[k];
     const float m = (x * 1.44269504088896341f + kRound) - kRound;  // n, in [-126, 128]
-    const float r = (x - m * 0.693359375f) - m * -2.12194440e-4f;
-    float p = 1.9875691500e-4f;
-    p = p * r + 1.3981999507e-3f;
-    p = p * r + 8.3334519073e-3f;
-    p = p * r + 4.1665795894e-2f;
-    p = p * r + 1.6666665459e-1f;
-    p = p * r + 5.0000001201e-1f;
-    p = p * (r * r) + r + 1.0f;
+    const float p = hico::expf_poly(hico::expf_reduce(x, m));
     // 2^n from its exponent bits; n = 128 as 2 * 2^127 (2^128 is no float).
     const int32_t ni = int32_t(m), top = ni > 127 ? 1 : 0, bits = (ni - top + 127) << 23;
     float scale;

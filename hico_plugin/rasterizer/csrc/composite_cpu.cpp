@@ -23,6 +23,8 @@
 #include <type_traits>
 #include <vector>
 
+#include "expf_cephes.h"
+
 namespace {
 
 template <typename scalar_t>
@@ -356,7 +358,7 @@ inline ivec lane_numbers() {  // 0, 1, ..., kLanes - 1
   return lanes;
 }
 
-// e^x for x <= 0 (Cephes expf: x = n ln2 + r, a degree-6 polynomial in r, 2^n from the exponent bits).
+// e^x for x <= 0 (Cephes expf, expf_cephes.h; n = floor(x / ln 2 + 1/2), 2^n from the exponent bits).
 // Lanes below -87 or NaN give e^-87; their results are masked out by the callers.
 inline fvec vexp(fvec x) {
   x = select(x > splat(-87.f), x, splat(-87.f));
@@ -365,14 +367,7 @@ inline fvec vexp(fvec x) {
   ivec n = __builtin_convertvector(t, ivec);  // toward zero; one less where that rounded up
   n = __builtin_convertvector(n, fvec) > t ? n - 1 : n;
   const fvec nf = __builtin_convertvector(n, fvec);
-  const fvec r = (x - nf * splat(0.693359375f)) - nf * splat(-2.12194440e-4f);
-  fvec p = splat(1.9875691500e-4f);
-  p = p * r + splat(1.3981999507e-3f);
-  p = p * r + splat(8.3334519073e-3f);
-  p = p * r + splat(4.1665795894e-2f);
-  p = p * r + splat(1.6666665459e-1f);
-  p = p * r + splat(5.0000001201e-1f);
-  p = p * r * r + r + splat(1.f);
+  const fvec p = hico::expf_poly(hico::expf_reduce(x, nf));
   const ivec bits = (n + 127) << 23;
   fvec scale;
   std::memcpy(&scale, &bits, sizeof scale);
