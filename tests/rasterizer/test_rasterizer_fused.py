@@ -87,6 +87,26 @@ def test_fused_float32_vector_loops_match_torch_compositor(tile_size, channels):
         torch.testing.assert_close(a / scale, b / scale, atol=2e-4, rtol=0, msg=name)
 
 
+def test_fused_float32_keeps_an_inf_feature_and_a_nan_gradient_where_they_belong():
+    # The vector loops multiply by a zero weight on lanes a row does not draw, unless the row's features
+    # (forward) or the tile's colour gradients (backward) are not all finite. The float64 scalar loops
+    # skip such pairs outright: their non-finite outputs and gradients are exactly where they belong.
+    inputs, bins = binned_scene(300, seed=5, tile_size=16)
+    inputs[3][7, 1] = float("inf")
+    got = {}
+    for dtype in (torch.float32, torch.float64):
+        leaves = [t.detach().to(dtype).clone().requires_grad_() for t in inputs]
+        out, acc = composite_fused(*leaves, bins)
+        cotangent = torch.ones_like(out)
+        cotangent[1, 100, 2] = float("nan")
+        ((out * cotangent).sum() + acc.sum()).backward()
+        got[dtype] = [out.isfinite(), *(leaf.grad.isfinite() for leaf in leaves)]
+    assert not got[torch.float64][0].all() and got[torch.float64][0].float().mean() > 0.5
+    assert not got[torch.float64][4].all()
+    for a, b in zip(got[torch.float32], got[torch.float64]):
+        assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_fused_image_layout_is_the_tiles_cropped(dtype):
     # 7 x 5 tiles of 10 pixels cover 70x50: the 64x48 images crop a column and a row of tiles.

@@ -313,7 +313,9 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
 // GCC/Clang vector extensions: 8 when the build targets AVX2 (fused.py adds -mavx2 where torch reports
 // that the CPU has it), else 4, SSE2's width, which every x86-64 CPU has. Per-lane masks replace the
 // scalar loops' branches, whose outcome at an ellipse's rim is a coin flip the CPU mispredicts. A
-// masked-out lane's update is a select, never a multiply by zero (an inf feature times 0 is NaN).
+// masked-out lane's update multiplies by a zero weight (or blends with a zero alpha) only where the row's
+// features and the tile's gradients are all finite, else it is a select (an inf feature times 0 is NaN):
+// either way the lane's state is left bit for bit as it was.
 // exp(-sigma) is Cephes' expf polynomial, within a few ulp of libm's over the sigma <= cut range that
 // can pass the alpha test. Per-pixel state lives in planar per-tile arrays padded by one vector, so a
 // vector that runs past the box reads and rewrites pixels it leaves unchanged. The arithmetic is
@@ -398,7 +400,11 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
       const Span box = rows.span(r, ox, oy, ts);
       const float mx = rows.mx[r], my = rows.my[r], op = rows.op[r], cut = rows.cut[r];
       const fvec ca = splat(rows.ca[r]), cb = splat(rows.cb[r]), cc = splat(rows.cc[r]);
-      for (int64_t d = 0; d < dim; ++d) fr[d] = splat(rows.feat[r * dim + d]);
+      bool finite = true;
+      for (int64_t d = 0; d < dim; ++d) {
+        fr[d] = splat(rows.feat[r * dim + d]);
+        finite &= std::isfinite(rows.feat[r * dim + d]);
+      }
       const ivec row_number = splat_i(int32_t(r + 1));
       for (int64_t ly = box.y0; ly < box.y1; ++ly) {
         const fvec dy = splat(float(oy + ly) + 0.5f - my);
@@ -421,12 +427,19 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
             active -= count(stop);
           }
           if (!any(draw)) continue;
-          const fvec w = alpha * before;
-          for (int64_t d = 0; d < dim; ++d) {
-            float* c = &color[d * padded + p];
-            vstore(c, vload(c) + select(draw, w * fr[d], splat(0.f)));
+          const fvec w = select(draw, alpha * before, splat(0.f));
+          if (finite) {  // w * f = 0 on the lanes not drawn
+            for (int64_t d = 0; d < dim; ++d) {
+              float* c = &color[d * padded + p];
+              vstore(c, vload(c) + w * fr[d]);
+            }
+          } else {  // an inf feature times 0 is NaN: select
+            for (int64_t d = 0; d < dim; ++d) {
+              float* c = &color[d * padded + p];
+              vstore(c, vload(c) + select(draw, w * fr[d], splat(0.f)));
+            }
           }
-          vstore(&weight[p], vload(&weight[p]) + select(draw, w, splat(0.f)));
+          vstore(&weight[p], vload(&weight[p]) + w);
           vstore(&trans[p], select(draw, next, before));
           vstore(&drawn[p], draw ? row_number : vload(&drawn[p]));
         }
@@ -474,11 +487,15 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
     std::vector<int32_t> drawn(padded, 0);
     std::copy(t_p + t * pixels, t_p + (t + 1) * pixels, trans.begin());
     std::copy(drawn_t, drawn_t + pixels, drawn.begin());
+    bool finite = true;  // every colour gradient of the tile: then w * gradient is 0 on a masked lane
     for (int64_t p = 0; p < pixels; ++p) {  // a pixel past the image's edge was cropped: gradient 0
       const int64_t at = layout.index(grid, t, p);
       if (at < 0) continue;
       g_alpha[p] = ga[at];
-      for (int64_t d = 0; d < dim; ++d) g_color[d * padded + p] = go[at * dim + d];
+      for (int64_t d = 0; d < dim; ++d) {
+        g_color[d * padded + p] = go[at * dim + d];
+        finite &= std::isfinite(go[at * dim + d]);
+      }
     }
     std::vector<fvec> fr(dim), sums(stride);
     int64_t ox, oy;
@@ -487,7 +504,11 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
       const Span box = rows.span(r, ox, oy, ts);
       const float mx = rows.mx[r], my = rows.my[r], op = rows.op[r], cut = rows.cut[r];
       const fvec ca = splat(rows.ca[r]), cb = splat(rows.cb[r]), cc = splat(rows.cc[r]);
-      for (int64_t d = 0; d < dim; ++d) fr[d] = splat(rows.feat[r * dim + d]);
+      bool row_finite = true;
+      for (int64_t d = 0; d < dim; ++d) {
+        fr[d] = splat(rows.feat[r * dim + d]);
+        row_finite &= std::isfinite(rows.feat[r * dim + d]);
+      }
       std::fill(sums.begin(), sums.end(), zero);
       const ivec row_index = splat_i(int32_t(r));
       bool touched = false;
@@ -507,9 +528,11 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
           m &= alpha >= splat(a_min);
           if (!any(m)) continue;
           touched = true;
-          const fvec in_front = select(m, vload(&trans[p]) / (one - alpha), vload(&trans[p]));
+          // alpha, 0 on masked lanes: there T / (1 - 0), T + 0 (f - T) and w = 0 leave every state as it was
+          const fvec a_m = select(m, alpha, zero);
+          const fvec in_front = vload(&trans[p]) / (one - a_m);
           vstore(&trans[p], in_front);
-          const fvec w = alpha * in_front;
+          const fvec w = a_m * in_front;
           float* bh_alpha = &behind[dim * padded + p];
           const fvec behind_alpha = vload(bh_alpha);
           fvec g_a = vload(&g_alpha[p]) * (one - behind_alpha);
@@ -517,11 +540,12 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
             const fvec gc = vload(&g_color[d * padded + p]);
             float* bh = &behind[d * padded + p];
             const fvec behind_d = vload(bh);
-            sums[6 + d] += select(m, w * gc, zero);
+            sums[6 + d] += finite ? w * gc : select(m, w * gc, zero);
             g_a += gc * (fr[d] - behind_d);
-            vstore(bh, select(m, alpha * fr[d] + (one - alpha) * behind_d, behind_d));
+            const fvec blended = a_m * fr[d] + (one - a_m) * behind_d;
+            vstore(bh, row_finite ? blended : select(m, blended, behind_d));
           }
-          vstore(bh_alpha, select(m, alpha + (one - alpha) * behind_alpha, behind_alpha));
+          vstore(bh_alpha, a_m + (one - a_m) * behind_alpha);
           g_a *= in_front;
           const ivec shaped = m & ~(raw > splat(a_max));  // clamped: no gradient to opacity or shape
           const fvec g_sigma = -g_a * alpha;
