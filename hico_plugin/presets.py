@@ -66,11 +66,11 @@ def _lite() -> HiCoTrainerConfig:
     instead of every 100 (10 of this run's): scaled down that far, each decision would average the
     gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. And photos larger
     than 480 px train coarse to fine (``ResolutionSchedule``: half size at the start, full size from
-    65 % of the steps on); smaller photos, such as the built-in scenes', train at full size
+    70 % of the steps on); smaller photos, such as the built-in scenes', train at full size
     throughout. And octree levels only where they measured better than one flat level
     (``lod_rule="measured"``): views at different distances and runs of 1,000 steps or more."""
     config = _with(_paper(), "hico-gs-lite", max_steps=3_000, eval_every=0, save_every=500,
-                   resolution=ResolutionSchedule(start_scale=0.5, full_at=0.65))
+                   resolution=ResolutionSchedule(start_scale=0.5, full_at=0.7))
     field = config.model.field
     field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750))
     return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field, lod_rule="measured"))
