@@ -428,16 +428,9 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
           }
           if (!any(draw)) continue;
           const fvec w = select(draw, alpha * before, splat(0.f));
-          if (finite) {  // w * f = 0 on the lanes not drawn
-            for (int64_t d = 0; d < dim; ++d) {
-              float* c = &color[d * padded + p];
-              vstore(c, vload(c) + w * fr[d]);
-            }
-          } else {  // an inf feature times 0 is NaN: select
-            for (int64_t d = 0; d < dim; ++d) {
-              float* c = &color[d * padded + p];
-              vstore(c, vload(c) + select(draw, w * fr[d], splat(0.f)));
-            }
+          for (int64_t d = 0; d < dim; ++d) {  // w * f is 0 on the lanes not drawn unless f is inf
+            float* c = &color[d * padded + p];
+            vstore(c, vload(c) + (finite ? w * fr[d] : select(draw, w * fr[d], splat(0.f))));
           }
           vstore(&weight[p], vload(&weight[p]) + w);
           vstore(&trans[p], select(draw, next, before));
