@@ -62,29 +62,18 @@ def _paper() -> HiCoTrainerConfig:
 def _lite() -> HiCoTrainerConfig:
     """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 3,000-step schedule.
 
-    Five changes besides the length. Anchors are adjusted every 750 reference steps (75 of this run's)
+    Three changes besides the length. Anchors are adjusted every 750 reference steps (75 of this run's)
     instead of every 100 (10 of this run's): scaled down that far, each decision would average the
-    gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. Every octree level
-    is active from the first step (``--model.field.progressive`` restores CityGS-X's coarse-to-fine
-    levels): the coarse phase would take the first 1,000 steps, and no anchor can grow into a finer
-    level until it ends, which leaves so short a run a third fewer anchors where the views need detail
-    (city-block, one thread, seeds 0 / 1: 29.16 / 29.25 dB test PSNR against 28.87 / 28.95, mesh F1
-    0.630 / 0.647 against 0.613 / 0.674). The D-SSIM term weighs 0.3 instead of 0.2
-    (``--model.losses.rgb.ssim-lambda 0.2`` restores it): with every level active, 29.28 / 29.38 dB
-    against 29.16 / 29.25, mesh F1 0.686 / 0.639; pagoda (1,000 steps, seeds 0-2) 30.05 ± 0.06 dB
-    colour-corrected against 30.04 ± 0.03. Photos larger than 480 px train coarse to fine
-    (``ResolutionSchedule``: half size at the start, full size from 70 % of the steps on); smaller
-    photos, such as the built-in scenes', train at full size throughout. And octree levels only where
-    they measured better than one flat level (``lod_rule="measured"``): views at different distances
-    and runs of 1,000 steps or more."""
+    gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. And photos larger
+    than 480 px train coarse to fine (``ResolutionSchedule``: half size at the start, full size from
+    70 % of the steps on); smaller photos, such as the built-in scenes', train at full size
+    throughout. And octree levels only where they measured better than one flat level
+    (``lod_rule="measured"``): views at different distances and runs of 1,000 steps or more."""
     config = _with(_paper(), "hico-gs-lite", max_steps=3_000, eval_every=0, save_every=500,
                    resolution=ResolutionSchedule(start_scale=0.5, full_at=0.7))
     field = config.model.field
-    field = dataclasses.replace(field, progressive=False,
-                                densify=dataclasses.replace(field.densify, interval=750))
-    losses = {**config.model.losses, "rgb": dataclasses.replace(config.model.losses["rgb"], ssim_lambda=0.3)}
-    return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field, losses=losses,
-                                                                 lod_rule="measured"))
+    field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750))
+    return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field, lod_rule="measured"))
 
 
 PRESETS: dict[str, tuple[str, HiCoTrainerConfig]] = {
