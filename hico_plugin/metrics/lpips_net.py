@@ -215,15 +215,21 @@ class LPIPS(nn.Module):
         return tuple(torch.from_numpy(np.asarray(self.weights[f"conv{index}.{name}"])).to(like)
                      for name in ("weight", "bias"))
 
-    def _run_layer(self, layer: tuple, x: Tensor, row_padding: bool = True) -> Tensor:
-        """One conv (ReLU in place: one activation of the pair alive, not two) or pool layer;
+    def _run_layer(self, layer: tuple, x: Tensor, conv: tuple[Tensor, Tensor] | None = None,
+                   row_padding: bool = True) -> Tensor:
+        """One conv (ReLU in place: one activation of the pair alive, not two) or pool layer. ``conv``:
+        the conv's (weight, bias) when the caller holds them (the bands reuse them), else read now;
         ``row_padding`` False leaves the rows unpadded (a band brings its own halo)."""
         if layer[0] == "pool":
             return F.max_pool2d(x, layer[1], layer[2])
         _, index, _, _, stride, padding = layer
-        weight, bias = self.conv_parameters(index, x)
-        weight = weight.contiguous(memory_format=torch.channels_last)
+        weight, bias = conv if conv is not None else self._conv_for(index, x)
         return F.relu_(F.conv2d(x, weight, bias, stride, (padding if row_padding else 0, padding)))
+
+    def _conv_for(self, index: int, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Conv ``index``'s parameters for input ``x``, the weight channels-last like the activations."""
+        weight, bias = self.conv_parameters(index, x)
+        return weight.contiguous(memory_format=torch.channels_last), bias
 
     def forward(self, pred: Tensor, target: Tensor, to_signed: bool = True) -> Tensor:
         if pred.shape != target.shape or pred.dim() not in (3, 4) or pred.shape[-1] != 3:
@@ -269,12 +275,13 @@ class LPIPS(nn.Module):
                 channels = layer[2]
             largest = max(largest, channels * widths[i + 1] * strides[i + 1])
         end = heights[-1]
+        convs = {layer[1]: self._conv_for(layer[1], images) for layer in layers if layer[0] == "conv"}
         bands = -(-end // max(1, BAND_ELEMENTS // (images.shape[0] * largest)))
         rows = -(-end // bands)  # equal bands: the same halo cost, none of them a sliver
         out, distance = None, 0.0
         for top in range(0, end, rows):
             bottom = min(top + rows, end)
-            band, band_distance = self._band(images, layers, heights, strides, top, bottom)
+            band, band_distance = self._band(images, layers, convs, heights, strides, top, bottom)
             if out is None:
                 out = torch.empty(*band.shape[:2], end, band.shape[3], dtype=band.dtype, device=band.device,
                                   memory_format=torch.channels_last)
@@ -282,8 +289,8 @@ class LPIPS(nn.Module):
             distance = distance + band_distance
         return out, distance
 
-    def _band(self, images: Tensor, layers: list[tuple], heights: list[int], strides: list[int],
-              top: int, bottom: int) -> tuple[Tensor, Tensor | float]:
+    def _band(self, images: Tensor, layers: list[tuple], convs: dict[int, tuple[Tensor, Tensor]],
+              heights: list[int], strides: list[int], top: int, bottom: int) -> tuple[Tensor, Tensor | float]:
         """Rows [top, bottom) of the last layer's output and the taps' distance over the rows this
         band owns (layer i's rows [top, bottom) * strides[i], to the layer's end in the last band)."""
         last = bottom == heights[-1]
@@ -307,7 +314,8 @@ class LPIPS(nn.Module):
         for i, layer in enumerate(layers):
             start, stop = need[i]  # x holds rows [first, first + rows) = these, clipped to the image
             if layer[0] == "conv":
-                x = self._run_layer(layer, F.pad(x, (0, 0, first - start, stop - first - x.shape[2])), row_padding=False)
+                x = self._run_layer(layer, F.pad(x, (0, 0, first - start, stop - first - x.shape[2])),
+                                    convs[layer[1]], row_padding=False)
                 first = start + layer[5]  # the output's first row (stride 1: its centre row)
             elif layer[0] == "pool":
                 x = self._run_layer(layer, x)
