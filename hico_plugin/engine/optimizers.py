@@ -80,6 +80,12 @@ class Optimizers:
         for optimizer in self.optimizers.values():
             optimizer.zero_grad()
 
+    def release_state(self) -> None:
+        """Drop every group's Adam moments (twice the parameters' memory). Only for a run that will
+        take no further step: a later step would restart the moments from zero."""
+        for optimizer in self.optimizers.values():
+            optimizer.state.clear()
+
     def resize_group(
         self, name: str, new_params: list[nn.Parameter], kept_rows: Tensor, num_new: int
     ) -> None:

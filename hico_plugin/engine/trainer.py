@@ -400,6 +400,10 @@ class Trainer:
         interrupted = stop and self.step < config.max_steps
         if self._saved_step != self.step:
             self.save_checkpoint()
+        if not interrupted:
+            # The run is complete and its last checkpoint holds the moments: the final evaluation
+            # does not hold them beside its own peak.
+            self.optimizers.release_state()
         try:
             eval_results = None if interrupted else self._evaluate(max(self.step - 1, 0), write_json=True)
         finally:

@@ -122,6 +122,15 @@ def test_resume_equals_uninterrupted_run_across_resizes(tmp_path):
     assert_states_close(final_state(straight), final_state(resumed), atol=1e-6)
 
 
+def test_a_complete_run_releases_the_adam_moments_its_last_checkpoint_holds(tmp_path):
+    trainer = toy_config(tmp_path, save_every=0).setup()
+    trainer.train()
+    assert all(not optimizer.state for optimizer in trainer.optimizers.optimizers.values())
+    saved = load_checkpoint(latest_checkpoint(tmp_path / "run" / "checkpoints"))["optimizers"]
+    moments = [entry for group in saved.values() for entry in group["state"].values()]
+    assert moments and all(entry["exp_avg"].abs().sum() > 0 for entry in moments)
+
+
 def test_nonfinite_losses_skip_then_stop_without_touching_the_last_checkpoint(tmp_path):
     config = toy_config(tmp_path, model=ToyModelConfig(nan_steps=(3,) + tuple(range(5, 40))),
                         save_every=5, max_nonfinite_steps=4)
