@@ -8,12 +8,14 @@ only projects and composites. It is a ``RasterizerBackend`` subclass registered 
 
     backend = RASTERIZER_BACKENDS.get("torch")(compositor="auto", use_compile=True)
     projected = backend.project(means [N,3], quats [N,4], scales [N,3], opacities [N],
-                                viewmats [C,4,4], Ks [C,3,3], width, height, near, far)
+                                viewmats [C,4,4], Ks [C,3,3], width, height, near, far, normals=False)
     image [C,H,W,D], alpha [C,H,W,1] = backend.composite(projected, means2d [C,N,2], opacities [N],
                                                           features [C,N,D], width, height, tile_size)
 
 ``projected`` has at least ``means_cam`` [C,N,3], ``means2d`` [C,N,2], ``depths`` [C,N] (camera z) and
-``radii`` [C,N] (int, 0 = culled); anything else on it is the backend's own. ``composite`` must blend
+``radii`` [C,N] (int, 0 = culled), and with ``normals=True`` also ``normals`` [C,N,3] and ``distances``
+[C,N], the camera-space normals and plane distances of ``geometry.gaussian_normals`` (a backend may compute
+them with its projection); anything else on it is the backend's own. ``composite`` must blend
 from the ``means2d`` it is handed, not ``projected.means2d``: with a single camera ``rasterize`` hands
 out ``projected.means2d[0]`` and renders from ``means2d[0][None]``, so that ``retain_grad()`` on the
 returned ``means2d`` collects the screen-space gradients used for densification. D may be 0 (an
@@ -62,7 +64,7 @@ class RasterizerBackend:
         self.use_compile = use_compile
 
     def project(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor,
-                Ks: Tensor, width: int, height: int, near: float, far: float) -> Any:
+                Ks: Tensor, width: int, height: int, near: float, far: float, *, normals: bool = False) -> Any:
         raise NotImplementedError
 
     def composite(self, projected: Any, means2d: Tensor, opacities: Tensor, features: Tensor, width: int,

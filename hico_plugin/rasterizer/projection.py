@@ -1,8 +1,12 @@
-"""EWA projection of 3-D Gaussians to screen-space ellipses (3DGS / gsplat conventions)."""
+"""EWA projection of 3-D Gaussians to screen-space ellipses (3DGS / gsplat conventions).
+
+The torch reference, used on any device; projection_fused.py computes the same (and the Gaussians' normals) in
+one C++ CPU kernel where the torch backend runs its fused compositor."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -10,11 +14,14 @@ from torch import Tensor
 ALPHA_MIN = 1.0 / 255.0  # pairs below this alpha are skipped when compositing
 COV2D_BLUR = 0.3  # px^2 added to the 2-D covariance diagonal (anti-aliasing low-pass, as 3DGS)
 FRUSTUM_MARGIN = 0.3  # the Jacobian is evaluated inside the frustum widened by 1.3 x tan(half FoV)
+DET_MIN = 1e-12  # floor of the 2-D covariance's determinant (>= 0.09 in exact arithmetic; guards rounding only)
+QUAT_NORM_MIN = 1e-12  # a quaternion of a smaller norm is read as the identity
 
 
 @dataclass
 class Projection:
-    """Per-camera screen-space Gaussians; every field has a leading camera dimension C."""
+    """Per-camera screen-space Gaussians; every field but ``reach`` has a leading camera dimension C.
+    means_cam, means2d, conics, depths, normals and distances are differentiable w.r.t. the Gaussians."""
 
     means_cam: Tensor  # [C,N,3] centres in camera coordinates
     means2d: Tensor  # [C,N,2] projected centres in pixels (pixel centres at +0.5)
@@ -23,6 +30,8 @@ class Projection:
     reach: Tensor  # [N] Mahalanobis radius where alpha falls to 1/255 (0 below that opacity)
     extents: Tensor  # [C,N,2] half-width / half-height in px of the drawn ellipse's bounding box
     radii: Tensor  # [C,N] int32 ceil(max extent); 0 = culled
+    normals: Optional[Tensor] = None  # [C,N,3] camera-space normals (geometry.gaussian_normals), when asked for
+    distances: Optional[Tensor] = None  # [C,N] their plane distances |n . mu_cam|, when asked for
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
@@ -32,7 +41,7 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     """
     norm = quats.norm(dim=-1, keepdim=True)
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
-    ok = norm > 1e-12
+    ok = norm > QUAT_NORM_MIN
     q = torch.where(ok, quats, identity) / torch.where(ok, norm, torch.ones_like(norm))
     w, x, y, z = q.unbind(-1)
     rows = [
@@ -41,6 +50,14 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
     ]
     return torch.stack(rows, -1).reshape(*quats.shape[:-1], 3, 3)
+
+
+def opacity_reach(opacities: Tensor) -> Tensor:
+    """opacities [N] -> [N] the largest Mahalanobis radius r where o * exp(-r^2/2) still reaches alpha 1/255;
+    0 (culled) at opacity <= 1/255. Only for binning, so without gradient."""
+    with torch.no_grad():
+        level = torch.log(opacities.clamp_min(1e-30) / ALPHA_MIN)
+        return torch.sqrt(2.0 * level.clamp_min(0.0))
 
 
 def world_to_camera(means: Tensor, viewmats: Tensor) -> Tensor:
@@ -97,19 +114,17 @@ def project_gaussians(
     a = cov2d[..., 0, 0] + COV2D_BLUR
     b = cov2d[..., 0, 1]
     c = cov2d[..., 1, 1] + COV2D_BLUR
-    det = (a * c - b * b).clamp_min(1e-12)  # >= 0.09 in exact arithmetic; guards rounding only
+    det = (a * c - b * b).clamp_min(DET_MIN)
     conics = torch.stack([c / det, -b / det, a / det], -1)
 
     with torch.no_grad():
-        # Largest Mahalanobis radius still reaching alpha 1/255; only for binning, so no gradient.
-        level = torch.log(opacities.clamp_min(1e-30) / ALPHA_MIN)
-        reach = torch.sqrt(2.0 * level.clamp_min(0.0))  # [N]
+        reach = opacity_reach(opacities)
         extents = torch.stack([reach * a.sqrt(), reach * c.sqrt()], -1)  # ellipse bbox half-sizes
         u, v = means2d.unbind(-1)
         ex, ey = extents.unbind(-1)
         # Pixel i (centre i+0.5) is covered when |i + 0.5 - u| <= ex.
         on_image = (u + ex > 0) & (u - ex < width) & (v + ey > 0) & (v - ey < height)
-        visible = in_depth & (level > 0) & on_image & torch.isfinite(u) & torch.isfinite(v)
+        visible = in_depth & (reach > 0) & on_image & torch.isfinite(u) & torch.isfinite(v)
         extents = torch.where(visible[..., None], extents, torch.zeros_like(extents))
         radii = torch.ceil(extents.amax(-1).clamp_max(2.0**30)).to(torch.int32)
         radii = torch.where(visible, radii.clamp_min(1), torch.zeros_like(radii))

@@ -1,5 +1,6 @@
-"""The backend registered as "torch": torch projection, tile binning and blending by the fused C++
-CPU kernel or the vectorised torch compositor (any device)."""
+"""The backend registered as "torch": projection, tile binning and blending by the fused C++ CPU kernels
+or their torch twins (any device). The fused projection runs exactly when the fused compositor does (and
+it takes the inputs: viewmats and Ks without a gradient); otherwise the torch reference."""
 
 from __future__ import annotations
 
@@ -10,7 +11,10 @@ from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer.base import RASTERIZER_BACKENDS, TILE_SIZE, RasterizerBackend
 from hico_plugin.rasterizer.composite import composite
 from hico_plugin.rasterizer.fused import EXTENSION, bin_gaussians_fused, composite_fused, fused_available
+from hico_plugin.rasterizer.geometry import gaussian_normals
 from hico_plugin.rasterizer.projection import Projection, project_gaussians
+from hico_plugin.rasterizer.projection_fused import (
+    project_gaussians_fused, projection_fused_accepts, projection_fused_available)
 from hico_plugin.rasterizer.tiling import TileBins, bin_gaussians
 
 # The vectorised torch compositor evaluates every pixel of a tile against every Gaussian binned to
@@ -40,10 +44,18 @@ def use_fused(compositor: str, device: torch.device) -> bool:
 
 @RASTERIZER_BACKENDS.register("torch")
 class TorchBackend(RasterizerBackend):
-    """Pure torch (plus the optional fused C++ blending on CPU); float32 and float64."""
+    """Pure torch (plus the optional fused C++ projection and blending on CPU); float32 and float64."""
 
-    def project(self, means, quats, scales, opacities, viewmats, Ks, width, height, near, far) -> Projection:
-        return project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far)
+    def project(self, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, *,
+                normals=False) -> Projection:
+        gaussians = (means, quats, scales, opacities, viewmats, Ks)
+        if (use_fused(self.compositor, means.device) and projection_fused_accepts(*gaussians)
+                and projection_fused_available()):
+            return project_gaussians_fused(*gaussians, width, height, near, far, normals=normals)
+        projected = project_gaussians(*gaussians, width, height, near, far)
+        if normals:
+            projected.normals, projected.distances = gaussian_normals(quats, scales, projected.means_cam, viewmats)
+        return projected
 
     def composite(self, projected: Projection, means2d, opacities, features, width, height, tile_size):
         num_cams, n = means2d.shape[:2]
