@@ -15,7 +15,7 @@ from hico_plugin.rasterizer.base import (
     RenderOutputs)
 from hico_plugin.rasterizer.depth_normal_fused import (
     depth_normal_from_plane, depth_normal_fused_accepts, depth_normal_fused_available)
-from hico_plugin.rasterizer.geometry import depth_to_normal, expected_depth, plane_depth
+from hico_plugin.rasterizer.geometry import depth_to_normal, expected_depth, gaussian_normals, plane_depth
 
 
 def rasterize(
@@ -59,7 +59,7 @@ def rasterize(
                                 normals=need_normal or need_distance)
     means2d_out = projected.means2d if batched else projected.means2d[0]
     means2d = means2d_out if batched else means2d_out[None]  # images depend on means2d_out itself
-    features, sizes = _pack_channels(colors, projected, outputs, depth_normal_from)
+    features, sizes = _pack_channels(colors, quats, scales, viewmats, projected, outputs, depth_normal_from)
     image, alpha = backend.composite(projected, means2d, opacities, features, width, height,
                                      tile_size or backend.default_tile_size(means.device))
     maps = dict(zip(("rgb", "normal", "distance", "z"), image.split(sizes, -1)))
@@ -73,20 +73,25 @@ def rasterize(
     return result
 
 
-def _pack_channels(colors: Tensor, projected, outputs: frozenset[str], depth_normal_from: str
-                   ) -> tuple[Tensor, list[int]]:
+def _pack_channels(colors: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, projected,
+                   outputs: frozenset[str], depth_normal_from: str) -> tuple[Tensor, list[int]]:
     """The per-Gaussian channels the outputs need, [C,N,D], as colour | normal (3) | plane distance (1)
     | camera z (1), and the width of each of those four groups (0 when not needed). The normals and
-    distances are the projection's (asked for when these outputs need them)."""
+    distances are the projection's when its backend computed them, else ``gaussian_normals`` of its
+    camera-space centres."""
     num_cams, n = projected.means2d.shape[:2]
     need_normal, need_distance, need_z = geometry_channels(outputs, depth_normal_from)
     channels = []
     if "rgb" in outputs:
         channels.append(colors[None].expand(num_cams, -1, -1))
-    if need_normal:
-        channels.append(projected.normals)
-    if need_distance:
-        channels.append(projected.distances[..., None])
+    if need_normal or need_distance:
+        normals, distances = projected.normals, projected.distances
+        if normals is None:
+            normals, distances = gaussian_normals(quats, scales, projected.means_cam, viewmats)
+        if need_normal:
+            channels.append(normals)
+        if need_distance:
+            channels.append(distances[..., None])
     if need_z:
         channels.append(projected.depths[..., None])
     features = torch.cat(channels, -1) if channels else colors.new_zeros(num_cams, n, 0)

@@ -13,9 +13,9 @@ only projects and composites. It is a ``RasterizerBackend`` subclass registered 
                                                           features [C,N,D], width, height, tile_size)
 
 ``projected`` has at least ``means_cam`` [C,N,3], ``means2d`` [C,N,2], ``depths`` [C,N] (camera z) and
-``radii`` [C,N] (int, 0 = culled), and with ``normals=True`` also ``normals`` [C,N,3] and ``distances``
-[C,N], the camera-space normals and plane distances of ``geometry.gaussian_normals`` (a backend may compute
-them with its projection); anything else on it is the backend's own. ``composite`` must blend
+``radii`` [C,N] (int, 0 = culled), and ``normals`` / ``distances``: None, or with ``normals=True`` a backend
+that computes them with its projection sets them to ``geometry.gaussian_normals``' [C,N,3] / [C,N]
+(``rasterize`` computes them from ``means_cam`` otherwise); anything else on it is the backend's own. ``composite`` must blend
 from the ``means2d`` it is handed, not ``projected.means2d``: with a single camera ``rasterize`` hands
 out ``projected.means2d[0]`` and renders from ``means2d[0][None]``, so that ``retain_grad()`` on the
 returned ``means2d`` collects the screen-space gradients used for densification. D may be 0 (an

@@ -22,14 +22,12 @@ import importlib.util
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Optional
 
 import torch
 from torch import Tensor
 
 from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer.base import RASTERIZER_BACKENDS, RasterizerBackend
-from hico_plugin.rasterizer.geometry import gaussian_normals
 from hico_plugin.rasterizer.projection import COV2D_BLUR, world_to_camera
 
 INSTALL_HINT = ('install it with `pip install -e ".[cuda]"` on a machine with a CUDA GPU and a CUDA build '
@@ -69,8 +67,8 @@ class GsplatProjection:
     radii_xy: Tensor  # [C,N,2] gsplat's per-axis radii, for its tile intersection
     conics: Tensor  # [C,N,3]
     ops: SimpleNamespace  # the gsplat kernels that projected, to composite with
-    normals: Optional[Tensor] = None  # [C,N,3] camera-space normals (geometry.gaussian_normals), when asked for
-    distances: Optional[Tensor] = None  # [C,N] their plane distances, when asked for
+    normals = None  # gsplat computes no normals: rasterize derives them from means_cam
+    distances = None
 
 
 @RASTERIZER_BACKENDS.register("gsplat")
@@ -85,12 +83,8 @@ class GsplatBackend(RasterizerBackend):
         radii_xy, means2d, depths, conics, _ = ops.fully_fused_projection(
             means, None, _nonzero_quats(quats), scales, viewmats, Ks, width, height, eps2d=COV2D_BLUR,
             near_plane=near, far_plane=far, opacities=opacities)
-        means_cam = world_to_camera(means, viewmats)
-        projected = GsplatProjection(means_cam, means2d, depths, radii_xy.amax(-1).to(torch.int32), radii_xy,
-                                     conics, ops)
-        if normals:
-            projected.normals, projected.distances = gaussian_normals(quats, scales, means_cam, viewmats)
-        return projected
+        return GsplatProjection(world_to_camera(means, viewmats), means2d, depths,
+                                radii_xy.amax(-1).to(torch.int32), radii_xy, conics, ops)
 
     def composite(self, projected: GsplatProjection, means2d, opacities, features, width, height, tile_size):
         ops = projected.ops

@@ -11,7 +11,6 @@ from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer.base import RASTERIZER_BACKENDS, TILE_SIZE, RasterizerBackend
 from hico_plugin.rasterizer.composite import composite
 from hico_plugin.rasterizer.fused import EXTENSION, bin_gaussians_fused, composite_fused, fused_available
-from hico_plugin.rasterizer.geometry import gaussian_normals
 from hico_plugin.rasterizer.projection import Projection, project_gaussians
 from hico_plugin.rasterizer.projection_fused import (
     project_gaussians_fused, projection_fused_accepts, projection_fused_available)
@@ -52,10 +51,7 @@ class TorchBackend(RasterizerBackend):
         if (use_fused(self.compositor, means.device) and projection_fused_accepts(*gaussians)
                 and projection_fused_available()):
             return project_gaussians_fused(*gaussians, width, height, near, far, normals=normals)
-        projected = project_gaussians(*gaussians, width, height, near, far)
-        if normals:
-            projected.normals, projected.distances = gaussian_normals(quats, scales, projected.means_cam, viewmats)
-        return projected
+        return project_gaussians(*gaussians, width, height, near, far)
 
     def composite(self, projected: Projection, means2d, opacities, features, width, height, tile_size):
         num_cams, n = means2d.shape[:2]

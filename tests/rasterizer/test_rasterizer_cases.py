@@ -8,6 +8,7 @@ import torch
 from hico_plugin.cameras import Camera
 from hico_plugin.errors import HicoError
 from hico_plugin.rasterizer import RASTERIZER_BACKENDS, RendererConfig, rasterize
+from hico_plugin.rasterizer import api as api_module
 from hico_plugin.rasterizer import torch_backend as torch_backend_module
 from hico_plugin.rasterizer import composite as composite_module
 
@@ -197,7 +198,7 @@ def test_rgb_alone_composites_only_colour_channels(monkeypatch):
     monkeypatch.setattr(torch_backend_module, "composite", spy)
     params = scene(20)
     colors5 = torch.rand(20, 5)
-    monkeypatch.setattr(torch_backend_module, "gaussian_normals", no_geometry)
+    monkeypatch.setattr(api_module, "gaussian_normals", no_geometry)
     torch_only = dict(use_compile=False, compositor="torch")
     out = rasterize(*params[:4], colors5, torch.eye(4), K32, 32, 24, **torch_only)
     assert out.alpha is None and out.depth is None and out.rgb.shape == (24, 32, 5)
