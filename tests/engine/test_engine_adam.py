@@ -1,4 +1,4 @@
-"""engine.adam.Adam: torch.optim.Adam's parameters bit for bit, its state_dict layout both ways, and
+"""engine.adam.Adam: torch.optim.Adam(fused=True)'s parameters bit for bit, its state_dict layout both ways, and
 no torch._dynamo import."""
 
 import copy
@@ -29,10 +29,10 @@ def _train(optimizer, params: list[nn.Parameter], steps: range) -> None:
         optimizer.step()
 
 
-def test_same_parameters_and_state_as_torch_adam():
+def test_same_parameters_and_state_as_torch_fused_adam():
     ours, theirs = _params(0), _params(0)
     mine = Adam(ours, lr=0.01, eps=1e-15)
-    torch_adam = torch.optim.Adam(theirs, lr=0.01, eps=1e-15)
+    torch_adam = torch.optim.Adam(theirs, lr=0.01, eps=1e-15, fused=True)
     _train(mine, ours, range(6))
     _train(torch_adam, theirs, range(6))
     for a, b in zip(ours, theirs):
@@ -46,7 +46,7 @@ def test_same_parameters_and_state_as_torch_adam():
 
 def test_state_dict_moves_both_ways():
     start = _params(1)
-    torch_adam = torch.optim.Adam(start, lr=0.01, eps=1e-15)
+    torch_adam = torch.optim.Adam(start, lr=0.01, eps=1e-15, fused=True)
     _train(torch_adam, start, range(4))
     # torch -> ours -> torch, each continuing where the other stopped, against torch alone
     ours = [nn.Parameter(p.detach().clone()) for p in start]
@@ -54,7 +54,7 @@ def test_state_dict_moves_both_ways():
     mine.load_state_dict(copy.deepcopy(torch_adam.state_dict()))  # as read from a file
     _train(mine, ours, range(4, 6))
     back = [nn.Parameter(p.detach().clone()) for p in ours]
-    torch_again = torch.optim.Adam(back, lr=0.0, eps=1e-15)
+    torch_again = torch.optim.Adam(back, lr=0.0, eps=1e-15, fused=True)
     torch_again.load_state_dict(copy.deepcopy(mine.state_dict()))
     _train(torch_again, back, range(6, 8))
     _train(torch_adam, start, range(4, 8))
@@ -69,3 +69,18 @@ def test_does_not_import_dynamo():
             "print('torch._dynamo' in sys.modules)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
+
+
+def test_continues_a_default_torch_adam_state_to_float32_rounding():
+    """A checkpoint written with torch's default (single-tensor) Adam resumes here; the fused kernel
+    differs from that implementation only by float32 rounding."""
+    start = _params(2)
+    torch_adam = torch.optim.Adam(start, lr=0.01, eps=1e-15)
+    _train(torch_adam, start, range(4))
+    ours = [nn.Parameter(p.detach().clone()) for p in start]
+    mine = Adam(ours, lr=0.0, eps=1e-15)
+    mine.load_state_dict(copy.deepcopy(torch_adam.state_dict()))
+    _train(mine, ours, range(4, 8))
+    _train(torch_adam, start, range(4, 8))
+    for a, b in zip(ours, start):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
