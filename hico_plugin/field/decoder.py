@@ -119,6 +119,8 @@ class GaussianDecoder(nn.Module):
         if not parts:
             parts.append(self._decode(features, positions, offsets, scalings, levels, camera_center,
                                       camera_index, anchor_ids))
+        if len(parts) == 1:  # the usual view: torch.cat would copy every output for nothing
+            return parts[0]
         names = NeuralGaussians.__dataclass_fields__
         return NeuralGaussians(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
 
