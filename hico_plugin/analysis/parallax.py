@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import ndimage
 
 if TYPE_CHECKING:
     from hico_plugin.analysis.uncovered_cells import ViewCells
@@ -135,6 +134,14 @@ def _on_uncovered(cells: "ViewCells", coords: np.ndarray) -> np.ndarray:
 
 
 def _sample(colours: np.ndarray, coords: np.ndarray) -> np.ndarray:
-    """Bilinear colours [N, 3] of the cell-colour grid [R, C, 3] at (x, y) [N, 2] in cell units."""
-    at = [coords[:, 1] - 0.5, coords[:, 0] - 0.5]
-    return np.stack([ndimage.map_coordinates(colours[..., c], at, order=1, mode="nearest") for c in range(3)], axis=1)
+    """Bilinear colours [N, 3] (the grid's dtype) of the cell-colour grid [R, C, 3] at (x, y) [N, 2] in
+    cell units: cell centres at +0.5, the edge cells' colours continuing beyond the outer centres."""
+    rows, cols = colours.shape[:2]
+    x = np.clip(coords[:, 0] - 0.5, 0, cols - 1)
+    y = np.clip(coords[:, 1] - 0.5, 0, rows - 1)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, cols - 1), np.minimum(y0 + 1, rows - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    top = (1 - fx) * colours[y0, x0] + fx * colours[y0, x1]
+    bottom = (1 - fx) * colours[y1, x0] + fx * colours[y1, x1]
+    return ((1 - fy) * top + fy * bottom).astype(colours.dtype)

@@ -17,12 +17,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding, project_points, sampled_views
 from hico_plugin.analysis.parallax import measure_parallax
 from hico_plugin.analysis.photo_gains import photo_gains
 from hico_plugin.data.transform import scene_up
+from hico_plugin.nearest import knn
 
 # image cells of 1/CELLS_PER_SIDE of the shorter image side (>= 4 px), so a thin band of sky still
 # fills whole cells at low resolution; an uncovered cell has no sparse point in it,
@@ -57,6 +57,15 @@ def up_vector(dataset: Any) -> np.ndarray:
     return scene_up(dataset.cameras.viewmats).numpy()
 
 
+def nearest_occupied(values: np.ndarray, occupied: np.ndarray) -> np.ndarray:
+    """Each cell's value taken from the nearest occupied cell (Euclidean, in cells; of equidistant ones,
+    the one the k-d tree finds first): values [R, C], occupied [R, C] bool, not all False -> [R, C]."""
+    # An exact search: OpenCV's distanceTransformWithLabels propagates a 3x3 / 5x5 mask's approximate
+    # distance and takes a farther cell for ~0.1 % of the cells of random grids.
+    _, nearest = knn(np.argwhere(occupied), 1, np.argwhere(np.ones_like(occupied)))  # [R*C, 1]
+    return values[occupied][nearest[:, 0]].reshape(values.shape)
+
+
 def view_cells(dataset: Any, view: int, points: np.ndarray, up: np.ndarray) -> ViewCells:
     """The cells of ``view`` (see the module docstring) and what ``analysis.parallax`` reads of them."""
     image = dataset.image(view).numpy().astype(np.float32) / 255.0
@@ -76,8 +85,7 @@ def view_cells(dataset: Any, view: int, points: np.ndarray, up: np.ndarray) -> V
     occupied = count > 0
     nearest_depth = np.full((rows, cols), np.nan)
     if occupied.any():
-        _, (near_rows, near_cols) = ndimage.distance_transform_edt(~occupied, return_indices=True)
-        nearest_depth = (depth_sum / np.maximum(count, 1.0))[near_rows, near_cols]
+        nearest_depth = nearest_occupied(depth_sum / np.maximum(count, 1.0), occupied)
     blurred = cv2.GaussianBlur(image, (0, 0), 1.5)
     gradient = np.zeros(image.shape[:2], np.float32)
     gradient[:, :-1] += np.abs(np.diff(blurred, axis=1)).mean(axis=2)

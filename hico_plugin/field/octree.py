@@ -14,10 +14,10 @@ import math
 from dataclasses import dataclass
 
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from hico_plugin.errors import HicoError
+from hico_plugin.nearest import knn
 
 
 @dataclass(frozen=True)
@@ -134,11 +134,8 @@ def knn_log_scale(positions: Tensor, k: int = 3) -> Tensor:
     n = positions.shape[0]
     if n < 2:
         return torch.zeros(n, dtype=positions.dtype, device=positions.device)
-    pts = positions.detach().cpu().double().numpy()
-    kk = min(k + 1, n)
-    dist, _ = cKDTree(pts).query(pts, k=kk)
-    # Column 0 is the query itself (or a coincident anchor at distance 0, equally valid as "self").
-    mean_sq = torch.from_numpy((dist[:, 1:] ** 2).mean(axis=1)).clamp_min(1e-7)
+    dist, _ = knn(positions.detach().cpu().double().numpy(), k)  # [N, min(k, N - 1)], self left out
+    mean_sq = torch.from_numpy((dist**2).mean(axis=1)).clamp_min(1e-7)
     return torch.log(torch.sqrt(mean_sq)).to(positions.dtype).to(positions.device)
 
 
@@ -241,8 +238,8 @@ def build_octree(points: Tensor, camera_centers: Tensor, config: OctreeBuildConf
     origin, cube_size = enclosing_cube(points, config.cube_extend)
     target = config.default_voxel_size
     if target <= 0:
-        target = float(torch.from_numpy(
-            cKDTree(points.double().numpy()).query(points.double().numpy(), k=2)[0][:, 1]).median())
+        spacing = knn(points.double().numpy(), 1)[0][:, 0]  # [P] (empty for a single point)
+        target = float(torch.from_numpy(spacing).median()) if spacing.size else 0.0
         target = target if target > 0 else cube_size / 1024
     base_layer = int(round(math.log2(cube_size / target))) - num_levels // 2 + 1
     grid = OctreeGrid(origin=tuple(float(x) for x in origin), cube_size=cube_size,

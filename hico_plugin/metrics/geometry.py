@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from hico_plugin.errors import HicoError
+from hico_plugin.nearest import knn
 
 
 def _pixel_mask(mask: Tensor | None, shape: torch.Size, name: str) -> Tensor:
@@ -88,8 +88,7 @@ def gt_spacing_threshold(gt_points: Tensor | np.ndarray, factor: float = 1.5) ->
     gt = _points(gt_points, "ground truth")
     if gt.shape[0] < 2:
         raise HicoError("surface metrics: ground truth needs at least 2 points to define its spacing")
-    distances, _ = cKDTree(gt).query(gt, k=2)
-    return factor * float(distances[:, 1].mean())
+    return factor * float(knn(gt, 1)[0].mean())
 
 
 @dataclass
@@ -120,8 +119,8 @@ def surface_metrics(
     tau = gt_spacing_threshold(gt) if threshold is None else float(threshold)
     if not (tau > 0 and math.isfinite(tau)):
         raise HicoError(f"surface metrics: threshold must be a positive finite distance, got {tau}")
-    pred_to_gt, _ = cKDTree(gt).query(pred)
-    gt_to_pred, _ = cKDTree(pred).query(gt)
+    pred_to_gt = knn(gt, 1, pred)[0][:, 0]
+    gt_to_pred = knn(pred, 1, gt)[0][:, 0]
     precision = float((pred_to_gt < tau).mean())
     recall = float((gt_to_pred < tau).mean())
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0

@@ -5,9 +5,10 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 
-from hico_plugin.analysis.parallax import MIN_CELLS, Parallax, measure_parallax
+from hico_plugin.analysis.parallax import MIN_CELLS, Parallax, _sample, measure_parallax
 from hico_plugin.analysis.uncovered_cells import ViewCells
 from hico_plugin.scenes.orbits import look_at
 
@@ -71,3 +72,19 @@ def test_flat_colour_and_few_cells():
     assert "sky" not in Parallax(cells=10, near_better=10, far_better=0, still=5).description()
     assert Parallax(cells=10, near_better=0, far_better=0, still=40).description().startswith(
         "open sky: the reconstructed points around these cells are too far to move")
+
+
+def test_bilinear_sampling_matches_scipy_map_coordinates():
+    """Order-1 interpolation with the edge cells continued outwards (scipy's mode "nearest")."""
+    ndimage = pytest.importorskip("scipy.ndimage")
+    rng = np.random.default_rng(0)
+    for rows, cols in ((ROWS, COLS), (1, 5), (4, 1), (1, 1)):
+        colours = rng.random((rows, cols, 3)).astype(np.float32)
+        coords = rng.uniform(-1.5, 1.5, (400, 2)) + rng.uniform(0, 1, (400, 2)) * [cols, rows]
+        coords[:4] = [[0.5, 0.5], [cols - 0.5, rows - 0.5], [cols, rows], [0.0, 0.0]]  # centres and edges
+        at = [coords[:, 1] - 0.5, coords[:, 0] - 0.5]
+        expected = np.stack([ndimage.map_coordinates(colours[..., c], at, order=1, mode="nearest")
+                             for c in range(3)], axis=1)
+        got = _sample(colours, coords)
+        assert got.dtype == expected.dtype
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)

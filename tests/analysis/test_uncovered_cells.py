@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from hico_plugin.analysis.evidence import DatasetEvidence, project_points
-from hico_plugin.analysis.uncovered_cells import environment_finding, up_vector, view_cells
+from hico_plugin.analysis.uncovered_cells import environment_finding, nearest_occupied, up_vector, view_cells
 from hico_plugin.data import DataParserConfig
 from hico_plugin.model.effects import EffectChoice
 from hico_plugin.scenes.generate import generate_scene
@@ -50,3 +51,21 @@ def test_uncovered_cells_have_no_point_and_reach_the_upward_edge():
     assert not (hit & cells.uncovered).any()
     assert cells.uncovered[0].any()  # the drone looks down at the tower: sky at the top of the frame
     assert np.isfinite(cells.nearest_depth).all() and cells.colours.shape == (rows, cols, 3)
+
+
+def test_nearest_occupied_cell_matches_scipy_distance_transform():
+    """The exact Euclidean nearest occupied cell: scipy's distance, and scipy's cell wherever no other
+    occupied cell is as near (equidistant ones may resolve differently)."""
+    ndimage = pytest.importorskip("scipy.ndimage")
+    rng = np.random.default_rng(0)
+    grid = np.argwhere(np.ones((24, 32), bool))
+    for share in (0.002, 0.02, 0.1, 0.5):
+        occupied = rng.random((24, 32)) < share
+        occupied[rng.integers(24), rng.integers(32)] = True
+        taken = nearest_occupied(np.arange(occupied.size).reshape(occupied.shape), occupied).reshape(-1)
+        distance, (rows, cols) = ndimage.distance_transform_edt(~occupied, return_indices=True)
+        assert occupied.reshape(-1)[taken].all()
+        np.testing.assert_allclose(np.linalg.norm(grid[taken] - grid, axis=1), distance.reshape(-1), atol=1e-12)
+        squared = ((grid[:, None] - np.argwhere(occupied)[None]) ** 2).sum(-1)
+        alone = (squared == squared.min(1, keepdims=True)).sum(1) == 1
+        np.testing.assert_array_equal(taken[alone], (rows * 32 + cols).reshape(-1)[alone])

@@ -28,6 +28,7 @@ from hico_plugin.mesh import (
     write_ply,
 )
 from hico_plugin.mesh.extract import scene_extent
+from hico_plugin.mesh.mesh import face_components
 from hico_plugin.metrics.geometry import gt_spacing_threshold
 from hico_plugin.rasterizer.base import RenderOutputs
 from hico_plugin.scenes.generate import generate_scene
@@ -174,6 +175,27 @@ def test_clean_mesh_drops_a_small_floating_blob():
     assert len(cleaned.faces) == 800 and len(cleaned.vertices) == len(surface.vertices)
     assert cleaned.vertices[:, 0].max() <= 1.0 + 1e-12
     assert len(clean_mesh(mesh, 1).faces) == 808  # only the degenerate triangle goes
+
+
+def test_face_components_match_scipy_connected_components():
+    """Random triangles over few vertices (components of every size) and a shuffled 2,000-triangle strip
+    (one component, 1,000 hops long): the same partition as scipy's, numbered by lowest vertex id."""
+    csgraph = pytest.importorskip("scipy.sparse.csgraph")
+    sparse = pytest.importorskip("scipy.sparse")
+    rng = np.random.default_rng(0)
+    strip = 3000 + np.arange(2000)[:, None] + np.arange(3)
+    faces = np.concatenate([rng.integers(0, 3000, (1200, 3)), strip[rng.permutation(2000)]])
+    mesh = TriangleMesh(np.zeros((5002, 3)), faces)
+    labels = face_components(mesh)
+    size = len(faces) + len(mesh.vertices)
+    graph = sparse.coo_matrix((np.ones(3 * len(faces)), (np.repeat(np.arange(len(faces)), 3),
+                                                         len(faces) + faces.reshape(-1))), shape=(size, size))
+    expected = csgraph.connected_components(graph, directed=False)[1][:len(faces)]
+    count = len(np.unique(expected))
+    assert labels.max() + 1 == count and len(np.unique(np.stack([labels, expected]), axis=1).T) == count
+    assert len(np.unique(labels[1200:])) == 1
+    lowest = [faces[labels == label].min() for label in range(count)]
+    assert (np.diff(lowest) > 0).all()
 
 
 def test_sampling_is_area_weighted_and_a_perfect_mesh_scores_one():
