@@ -8,13 +8,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pycolmap
 import torch
 from torch import Tensor
 
 from hico_plugin.cameras import Cameras
 from hico_plugin.data import images as image_io
 from hico_plugin.data.cache import ByteLRUCache
+from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.transform import SceneTransform
 from hico_plugin.data.undistort import PINHOLE_MODELS, remap, undistortion_maps
@@ -32,8 +32,8 @@ class CameraSource:
 
     full_size: tuple[int, int]  # (width, height) of the camera in sparse/0
     model: str  # COLMAP model name as stored in sparse/0
-    distorted: pycolmap.Camera  # at the loaded resolution
-    pinhole: pycolmap.Camera  # at the loaded resolution; what ``Dataset.cameras`` holds
+    distorted: Camera  # at the loaded resolution
+    pinhole: Camera  # at the loaded resolution; what ``Dataset.cameras`` holds
 
     @property
     def needs_undistortion(self) -> bool:

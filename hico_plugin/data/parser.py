@@ -16,6 +16,7 @@ import tyro
 
 from hico_plugin.cameras import Cameras
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
 from hico_plugin.data.dataset import CameraSource, Dataset
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
@@ -235,12 +236,12 @@ class DataParserConfig(InstantiateConfig):
             raise HicoError(f"{field}: the test split takes all {len(names)} images, leaving none to train on")
         return torch.from_numpy(np.flatnonzero(~is_test)), torch.from_numpy(np.flatnonzero(is_test))
 
-    def _camera_source(self, camera, downscale: int) -> CameraSource:
+    def _camera_source(self, camera: Camera, downscale: int) -> CameraSource:
         full_size = (camera.width, camera.height)
         pinhole = pinhole_of(camera)
         return CameraSource(
             full_size=full_size,
-            model=camera.model.name,
+            model=camera.model,
             distorted=rescaled(camera, *_downscaled(full_size, downscale)),
             pinhole=rescaled(pinhole, *_downscaled((pinhole.width, pinhole.height), downscale)),
         )
@@ -269,7 +270,7 @@ class DataParserConfig(InstantiateConfig):
         key_source = json.dumps(
             [str(record.image_paths[0].parent.relative_to(self.data)), downscale]
             + [
-                [cid, c.model.name, c.width, c.height, list(map(float, c.params))]
+                [cid, c.model, c.width, c.height, list(map(float, c.params))]
                 for cid, c in sorted(record.cameras.items())
             ]
         )

@@ -10,8 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
+from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.triangulate import MIN_POINTS, triangulate_known_poses
 
 
@@ -41,7 +41,7 @@ def random_seed_points(viewmats: np.ndarray, count: int, source: str, reason: st
     return random_points(viewmats, count)
 
 
-def seed_points(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, pycolmap.Camera],
+def seed_points(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, Camera],
                 viewmats: np.ndarray, source: str, triangulate: bool, random_count: int,
                 notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Seed points of a posed image set without a point cloud: triangulated from the known poses

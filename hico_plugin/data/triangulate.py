@@ -4,7 +4,8 @@ For posed image sets without a point cloud (transforms.json without ``ply_file_p
 SIFT on the CPU, matching (every pair for small sets, the nearest cameras for large ones), then
 ``pycolmap.triangulate_points`` on a reconstruction that holds the given cameras and poses, which
 stay fixed. The result is cached under the user cache directory, keyed by everything it depends on
-(image files, cameras, poses, options), never written into the dataset folder.
+(image files, cameras, poses, options), never written into the dataset folder; pycolmap is imported
+only when the cache misses.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import pycolmap
+
+from hico_plugin.data.camera_model import Camera
 
 MIN_POINTS = 100
 """Fewer triangulated points than this and the caller falls back to random points."""
@@ -37,7 +39,7 @@ def cache_dir() -> Path:
 
 
 def triangulate_known_poses(data_dir: Path, names: list[str], camera_ids: list[int],
-                            cameras: dict[int, pycolmap.Camera], viewmats: np.ndarray,
+                            cameras: dict[int, Camera], viewmats: np.ndarray,
                             num_threads: int = -1) -> tuple[np.ndarray, np.ndarray]:
     """Points seen by the images ``data_dir/names[i]`` from the known cameras.
 
@@ -67,8 +69,10 @@ def triangulate_known_poses(data_dir: Path, names: list[str], camera_ids: list[i
     return points, colors
 
 
-def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, pycolmap.Camera],
+def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, Camera],
                  viewmats: np.ndarray, work: Path, num_threads: int) -> tuple[np.ndarray, np.ndarray]:
+    import pycolmap
+
     database = work / "database.db"
     pycolmap.logging.minloglevel = 2  # COLMAP's INFO lines would drown the training log
     extraction = pycolmap.FeatureExtractionOptions()
@@ -84,7 +88,7 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
         images = db.read_all_images()
         for image in images:
             i = index_of[image.name]
-            camera = pycolmap.Camera(cameras[camera_ids[i]].todict())
+            camera = cameras[camera_ids[i]].to_pycolmap()
             camera.camera_id = image.camera_id
             db.update_camera(camera)
             reconstruction.add_camera_with_trivial_rig(camera)
@@ -121,7 +125,7 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
             np.array([p.color for p in ordered], dtype=np.uint8))
 
 
-def _cache_key(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, pycolmap.Camera],
+def _cache_key(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, Camera],
                viewmats: np.ndarray) -> str:
     files = []
     for name in names:
@@ -130,7 +134,7 @@ def _cache_key(data_dir: Path, names: list[str], camera_ids: list[int], cameras:
     source = json.dumps([
         CACHE_VERSION, MAX_FEATURES, MAX_IMAGE_SIZE, EXHAUSTIVE_UP_TO, SPATIAL_NEIGHBOURS,
         str(data_dir.resolve()), files, camera_ids,
-        [[cid, c.model.name, c.width, c.height, [round(float(v), 9) for v in c.params]] for cid, c in sorted(cameras.items())],
+        [[cid, c.model, c.width, c.height, [round(float(v), 9) for v in c.params]] for cid, c in sorted(cameras.items())],
         np.round(viewmats, 9).tolist(),
     ])
     return hashlib.sha1(source.encode()).hexdigest()[:16]

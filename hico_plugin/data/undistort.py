@@ -1,66 +1,99 @@
 """Undistortion of SIMPLE_RADIAL / RADIAL / OPENCV cameras to pinhole ones.
 
-The pinhole camera is COLMAP's own choice (``pycolmap.undistort_camera``, the image undistorter's
-camera); the pixel lookup evaluates COLMAP's distortion model itself (``Camera.img_from_cam``), so no
-convention is translated by hand. Both use COLMAP's pixel convention (pixel centres at +0.5); OpenCV's
-``remap`` wants centres at integers, hence the -0.5.
+The pinhole camera is COLMAP's own choice (its image undistorter's camera, ``UndistortCamera`` with
+default options, computed here without pycolmap); the pixel lookup evaluates COLMAP's distortion model
+(``Camera.img_from_cam``), so no convention is translated by hand. Both use COLMAP's pixel convention
+(pixel centres at +0.5); OpenCV's ``remap`` wants centres at integers, hence the -0.5.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
-import pycolmap
+
+from hico_plugin.data.camera_model import INVALID_CAMERA_ID, Camera
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 SUPPORTED_MODELS = PINHOLE_MODELS + DISTORTED_MODELS
 
+# UndistortCameraOptions' defaults: no blank pixels, the scale change clamped to [0.2, 2].
+_BLANK_PIXELS, _MIN_SCALE, _MAX_SCALE = 0.0, 0.2, 2.0
 
-def copy_camera(camera: pycolmap.Camera) -> pycolmap.Camera:
-    return pycolmap.Camera(camera.todict())
 
-
-def rescaled(camera: pycolmap.Camera, width: int, height: int) -> pycolmap.Camera:
+def rescaled(camera: Camera, width: int, height: int) -> Camera:
     """A copy of ``camera`` at ``width`` x ``height`` pixels."""
-    out = copy_camera(camera)
+    out = dataclasses.replace(camera)
     if (width, height) != (camera.width, camera.height):
         out.rescale(width, height)
     return out
 
 
-def pinhole_of(camera: pycolmap.Camera) -> pycolmap.Camera:
+def pinhole_of(camera: Camera) -> Camera:
     """The PINHOLE camera images of ``camera`` are undistorted to (the camera itself if pinhole)."""
-    if camera.model.name in PINHOLE_MODELS:
-        return copy_camera(camera)
-    return pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), camera)
+    if camera.model in PINHOLE_MODELS:
+        return dataclasses.replace(camera)
+    if camera.model not in DISTORTED_MODELS:  # a model only pycolmap evaluates (transforms.json's fisheye)
+        import pycolmap
+
+        return Camera.from_pycolmap(pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), camera.to_pycolmap()))
+    return _undistorted_camera(camera)
 
 
-def pinhole_twin(camera: pycolmap.Camera) -> pycolmap.Camera:
-    """A PINHOLE camera with ``camera``'s id, size, focal lengths and principal point: its distortion dropped."""
-    twin = pycolmap.Camera.create_from_model_name(camera.camera_id, "PINHOLE", 1.0, camera.width, camera.height)
-    twin.params = [camera.focal_length_x, camera.focal_length_y, camera.principal_point_x, camera.principal_point_y]
-    return twin
-
-
-def max_distortion_px(camera: pycolmap.Camera, samples: int = 65) -> float:
-    """The largest distance, in pixels, between where ``camera`` and its ``pinhole_twin`` put the same
-    ray, over a ``samples`` x ``samples`` grid spanning the whole image (its edges, corners included).
-    The grid points are the twin's pixels; COLMAP's distortion models are smooth over the image, so
-    the grid's maximum is the image's to well under a pixel. A ray the model cannot place counts as
-    infinitely far (such a camera is never taken for a pinhole one)."""
+def _undistorted_camera(camera: Camera) -> Camera:
+    """COLMAP's UndistortCamera with default options: the focal lengths kept, the image resized so the
+    undistorted border of the distorted image leaves no blank pixel (by at most the scale limits), the
+    principal point scaled with the size."""
+    width, height = camera.width, camera.height
     fx, fy = camera.focal_length_x, camera.focal_length_y
-    cx, cy = camera.principal_point_x, camera.principal_point_y
-    grid_x, grid_y = np.meshgrid(np.linspace(0.0, camera.width, samples), np.linspace(0.0, camera.height, samples))
-    rays = np.stack([(grid_x.ravel() - cx) / fx, (grid_y.ravel() - cy) / fy, np.ones(grid_x.size)], axis=-1)
-    moved = camera.img_from_cam(rays)
-    distance = np.hypot(moved[:, 0] - grid_x.ravel(), moved[:, 1] - grid_y.ravel())
-    return float(np.nan_to_num(distance, nan=np.inf).max())
+    cx, cy = np.float64(camera.principal_point_x), np.float64(camera.principal_point_y)
+    rows, cols = np.arange(height) + 0.5, np.arange(width) + 0.5
+    # the pixel centres of the left, right, top and bottom border, unprojected in one go
+    borders = [np.stack([np.full(height, 0.5), rows], axis=-1), np.stack([np.full(height, width - 0.5), rows], axis=-1),
+               np.stack([cols, np.full(width, 0.5)], axis=-1), np.stack([cols, np.full(width, height - 0.5)], axis=-1)]
+    rays = np.split(camera.cam_from_img(np.concatenate(borders)), np.cumsum([len(b) for b in borders])[:-1])
+
+    def extent(rays: np.ndarray, axis: int) -> tuple[np.float64, np.float64]:
+        """(min, max) of coordinate ``axis`` where the pinhole camera puts ``rays`` [N, 2]; rays COLMAP
+        could not unproject (NaN) or whose norm overflows are left out."""
+        with np.errstate(over="ignore"):
+            rays = rays[rays[:, 0] * rays[:, 0] + rays[:, 1] * rays[:, 1] < np.inf]
+        coordinate = (fx, fy)[axis] * rays[:, axis] + (cx, cy)[axis]
+        return (np.min(coordinate, initial=np.finfo(np.float64).max),
+                np.max(coordinate, initial=np.finfo(np.float64).min))
+
+    (left_min_x, left_max_x), (right_min_x, right_max_x) = extent(rays[0], 0), extent(rays[1], 0)
+    (top_min_y, top_max_y), (bottom_min_y, bottom_max_y) = extent(rays[2], 1), extent(rays[3], 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # the scale that keeps every distorted pixel, and the one that leaves no blank pixel
+        min_scale_x = _min(cx / (cx - left_min_x), (width - 0.5 - cx) / (right_max_x - cx))
+        min_scale_y = _min(cy / (cy - top_min_y), (height - 0.5 - cy) / (bottom_max_y - cy))
+        max_scale_x = _max(cx / (cx - left_max_x), (width - 0.5 - cx) / (right_min_x - cx))
+        max_scale_y = _max(cy / (cy - top_max_y), (height - 0.5 - cy) / (bottom_min_y - cy))
+        scale_x = 1.0 / (min_scale_x * _BLANK_PIXELS + max_scale_x * (1.0 - _BLANK_PIXELS))
+        scale_y = 1.0 / (min_scale_y * _BLANK_PIXELS + max_scale_y * (1.0 - _BLANK_PIXELS))
+    scale_x = _max(np.float64(_MIN_SCALE), _min(scale_x, np.float64(_MAX_SCALE)))
+    scale_y = _max(np.float64(_MIN_SCALE), _min(scale_y, np.float64(_MAX_SCALE)))
+    new_width, new_height = int(_max(np.float64(1.0), scale_x * width)), int(_max(np.float64(1.0), scale_y * height))
+    return Camera(camera_id=INVALID_CAMERA_ID, model="PINHOLE", width=new_width, height=new_height,
+                  params=[fx, fy, cx * new_width / width, cy * new_height / height])
 
 
-def undistortion_maps(distorted: pycolmap.Camera, pinhole: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
+def _min(a: np.float64, b: np.float64) -> np.float64:
+    """std::min: ``a`` unless ``b`` is smaller (a NaN ``b`` is passed over, a NaN ``a`` kept)."""
+    return b if b < a else a
+
+
+def _max(a: np.float64, b: np.float64) -> np.float64:
+    """std::max: ``a`` unless ``b`` is larger."""
+    return b if a < b else a
+
+
+def undistortion_maps(distorted: Camera, pinhole: Camera) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps [H', W'] float32 (x, y): where each pinhole pixel reads the distorted image."""
-    fx, fy, cx, cy = _pinhole_params(pinhole)
+    fx, fy, cx, cy = pinhole.focal_length_x, pinhole.focal_length_y, pinhole.principal_point_x, pinhole.principal_point_y
     xs = (np.arange(pinhole.width) + 0.5 - cx) / fx
     ys = (np.arange(pinhole.height) + 0.5 - cy) / fy
     grid_x, grid_y = np.meshgrid(xs, ys)
@@ -77,14 +110,7 @@ def remap(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray], nearest: bool 
     return out.reshape(*maps[0].shape, *image.shape[2:])
 
 
-def _pinhole_params(camera: pycolmap.Camera) -> tuple[float, float, float, float]:
-    params = camera.params
-    if camera.model.name == "SIMPLE_PINHOLE":
-        return params[0], params[0], params[1], params[2]
-    return params[0], params[1], params[2], params[3]
-
-
-def calibration_matrix(camera: pycolmap.Camera) -> np.ndarray:
+def calibration_matrix(camera: Camera) -> np.ndarray:
     """[3, 3] K of a pinhole camera (COLMAP's pixel convention, as ``hico_plugin.cameras`` uses)."""
-    fx, fy, cx, cy = _pinhole_params(camera)
+    fx, fy, cx, cy = camera.focal_length_x, camera.focal_length_y, camera.principal_point_x, camera.principal_point_y
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

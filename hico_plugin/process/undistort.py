@@ -22,11 +22,32 @@ import numpy as np
 import pycolmap
 
 from hico_plugin.data import images as image_io
-from hico_plugin.data.undistort import max_distortion_px, pinhole_twin
 from hico_plugin.errors import HicoError
 from hico_plugin.process.stages import Report
 
 KEEP_BELOW_PX = 0.5
+
+
+def pinhole_twin(camera: pycolmap.Camera) -> pycolmap.Camera:
+    """A PINHOLE camera with ``camera``'s id, size, focal lengths and principal point: its distortion dropped."""
+    twin = pycolmap.Camera.create_from_model_name(camera.camera_id, "PINHOLE", 1.0, camera.width, camera.height)
+    twin.params = [camera.focal_length_x, camera.focal_length_y, camera.principal_point_x, camera.principal_point_y]
+    return twin
+
+
+def max_distortion_px(camera: pycolmap.Camera, samples: int = 65) -> float:
+    """The largest distance, in pixels, between where ``camera`` and its ``pinhole_twin`` put the same
+    ray, over a ``samples`` x ``samples`` grid spanning the whole image (its edges, corners included).
+    The grid points are the twin's pixels; COLMAP's distortion models are smooth over the image, so
+    the grid's maximum is the image's to well under a pixel. A ray the model cannot place counts as
+    infinitely far (such a camera is never taken for a pinhole one)."""
+    fx, fy = camera.focal_length_x, camera.focal_length_y
+    cx, cy = camera.principal_point_x, camera.principal_point_y
+    grid_x, grid_y = np.meshgrid(np.linspace(0.0, camera.width, samples), np.linspace(0.0, camera.height, samples))
+    rays = np.stack([(grid_x.ravel() - cx) / fx, (grid_y.ravel() - cy) / fy, np.ones(grid_x.size)], axis=-1)
+    moved = camera.img_from_cam(rays)
+    distance = np.hypot(moved[:, 0] - grid_x.ravel(), moved[:, 1] - grid_y.ravel())
+    return float(np.nan_to_num(distance, nan=np.inf).max())
 
 
 def camera_choices(reconstruction: pycolmap.Reconstruction,

@@ -20,19 +20,20 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-import pycolmap
 from threadpoolctl import threadpool_limits
 
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes import capture_effects as fx
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
 from hico_plugin.scenes.render import View, render_view
-from hico_plugin.scenes.sfm import run_sfm
 from hico_plugin.scenes.sparse import SparsePoints, feature_points
+
+if TYPE_CHECKING:
+    import pycolmap
 
 GENERATOR_VERSION = 1  # bump when output for the same parameters changes, to invalidate caches
 CACHE_ENV = "HICO_CACHE_DIR"
@@ -192,6 +193,8 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
     t_sparse = time.perf_counter() - t_sparse
     sfm_stats, t_sfm = None, time.perf_counter()
     if config.sfm:
+        from hico_plugin.scenes.sfm import run_sfm
+
         sfm_stats = run_sfm(out, reconstruction, scene.K, config.seed)
     t_sfm = time.perf_counter() - t_sfm
 
@@ -271,7 +274,10 @@ def _camera_distance_range(scene: Scene) -> list[float]:
 
 
 def build_reconstruction(scene: Scene, sparse: SparsePoints) -> pycolmap.Reconstruction:
-    """A pycolmap model: one PINHOLE camera, one posed image per view, points with tracks."""
+    """A pycolmap model: one PINHOLE camera, one posed image per view, points with tracks. pycolmap is
+    imported here, not with the module: training on a scene already generated never loads it."""
+    import pycolmap
+
     K = scene.K
     reconstruction = pycolmap.Reconstruction()
     camera = pycolmap.Camera(

@@ -313,3 +313,60 @@ def test_undistorted_images_are_cached_in_the_user_cache_not_the_dataset(tmp_pat
     dataset.image(0)
     assert not (root / ".hico_cache").exists()
     assert len(list((tmp_path / "user_cache" / "hico_plugin").rglob("view_000.png.png"))) == 1
+
+
+_LOAD_WITHOUT_PYCOLMAP = """
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import hico_plugin.cli.train  # noqa: F401 -- the trainer's imports
+from hico_plugin.data import DataParserConfig
+from hico_plugin.data.formats.transforms import TransformsFormat
+from hico_plugin.data.triangulate import _cache_key, cache_dir
+
+assert "pycolmap" not in sys.modules, "imported with the trainer"
+pinhole, distorted, transforms = (Path(arg) for arg in sys.argv[1:])
+for root in (pinhole, distorted):
+    dataset = DataParserConfig(data=root, test_every=0).setup(announce=False)
+    dataset.verify_images()
+    dataset.tracks.observations()
+# transforms.json whose triangulated seed points are cached (as a second run finds them)
+record = TransformsFormat(triangulate=False).read(transforms)
+key = _cache_key(transforms, record.names, record.camera_ids, record.cameras, record.viewmats)
+cache_dir().mkdir(parents=True)
+np.savez(cache_dir() / f"{key}.npz", points=np.random.default_rng(0).normal(size=(200, 3)),
+         colors=np.zeros((200, 3), np.uint8))
+dataset = DataParserConfig(data=transforms, test_every=0).setup(announce=False)
+assert "triangulated 200" in " ".join(dataset.notes), dataset.notes
+dataset.verify_images()
+assert "pycolmap" not in sys.modules, "imported while loading"
+"""
+
+
+def test_loading_pinhole_distorted_and_cached_transforms_never_imports_pycolmap(tmp_path):
+    """pycolmap costs a training run 56 MiB: the trainer loads a pinhole COLMAP model, a distorted one
+    (text) and a transforms.json with distortion and cached seed points without it."""
+    import json
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    params, _ = DISTORTED["OPENCV"]
+    write_ring_dataset(tmp_path / "pinhole")
+    written = write_ring_dataset(tmp_path / "distorted", model="OPENCV", params=params, size=(80, 60), text=True)
+    shutil.copytree(tmp_path / "distorted" / "images", tmp_path / "transforms" / "images")
+    frames = []
+    for name, pose in zip(written["names"], written["poses"]):
+        c2w = np.linalg.inv(np.concatenate([pose, [[0, 0, 0, 1]]]))
+        c2w[:, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": f"images/{name}", "transform_matrix": c2w.tolist()})
+    (tmp_path / "transforms" / "transforms.json").write_text(json.dumps(
+        {"fl_x": params[0], "fl_y": params[1], "cx": params[2], "cy": params[3], "w": 80, "h": 60,
+         **dict(zip(("k1", "k2", "p1", "p2"), params[4:])), "frames": frames}))
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    result = subprocess.run([sys.executable, "-c", _LOAD_WITHOUT_PYCOLMAP, *(str(tmp_path / name) for name in (
+        "pinhole", "distorted", "transforms"))], capture_output=True, text=True, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]

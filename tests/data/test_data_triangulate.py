@@ -87,3 +87,28 @@ def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, mon
     distance = _surface_distances(scene, dataset.points.double().numpy())
     assert len(distance) >= MIN_POINTS
     assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
+
+
+def test_cache_key_is_the_one_pycolmap_cameras_gave(tmp_path):
+    """A user's triangulation cache keeps hitting: the key from plain cameras is the key the loader made
+    when cameras were pycolmap's (model by name, parameters as pycolmap stores them)."""
+    import hashlib
+    import json
+
+    from hico_plugin.data import triangulate
+    from hico_plugin.data.camera_model import Camera
+
+    (tmp_path / "a.jpg").write_bytes(b"jpeg")
+    camera = Camera(camera_id=1, model="OPENCV", width=1080, height=1920,
+                    params=[1375.52, 1374.49, 554.558, 965.268, 0.0578421, -0.0805099, -0.000980296, 0.00015575])
+    viewmats = np.eye(4)[None] + 1e-3
+    theirs = pycolmap.Camera(model="OPENCV", width=1080, height=1920, params=list(camera.params))
+    stat = (tmp_path / "a.jpg").stat()
+    source = json.dumps([
+        triangulate.CACHE_VERSION, triangulate.MAX_FEATURES, triangulate.MAX_IMAGE_SIZE, triangulate.EXHAUSTIVE_UP_TO,
+        triangulate.SPATIAL_NEIGHBOURS, str(tmp_path.resolve()), [["a.jpg", stat.st_size, stat.st_mtime_ns]], [1],
+        [[1, theirs.model.name, theirs.width, theirs.height, [round(float(v), 9) for v in theirs.params]]],
+        np.round(viewmats, 9).tolist(),
+    ])
+    assert triangulate._cache_key(tmp_path, ["a.jpg"], [1], {1: camera}, viewmats) == (
+        hashlib.sha1(source.encode()).hexdigest()[:16])

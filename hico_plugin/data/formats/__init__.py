@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pycolmap
 
+from hico_plugin.data.camera_model import Camera
 from hico_plugin.registry import Registry
 
 
@@ -32,7 +32,7 @@ class SceneRecord:
     names: list[str]  # [N] view names (unique; also the undistortion cache's file names)
     image_paths: list[Path]  # [N] full-resolution image files, inside the dataset folder
     camera_ids: list[int]  # [N] camera of each view
-    cameras: dict[int, pycolmap.Camera]  # any COLMAP model; undistorted to pinhole on load
+    cameras: dict[int, Camera]  # any COLMAP model; undistorted to pinhole on load
     viewmats: np.ndarray  # [N, 4, 4] float64 world->camera, OpenCV axes (x right, y down, z forward)
     points: np.ndarray  # [P, 3] float64 seed points in the same world frame
     point_colors: np.ndarray  # [P, 3] uint8

@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pycolmap
 import torch
 
+from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.checks import check_intrinsics
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
@@ -64,7 +64,7 @@ class MegaNerfFormat(DataFormat):
     def read(self, data_dir: Path) -> SceneRecord:
         origin, scale = _coordinates(data_dir / "coordinates.pt")
         names, paths, camera_ids, viewmats, test_names = [], [], [], [], []
-        cameras: dict[int, pycolmap.Camera] = {}
+        cameras: dict[int, Camera] = {}
         camera_of: dict[tuple, int] = {}
         for split in SPLITS:
             metadata_dir = data_dir / split / "metadata"
@@ -162,7 +162,7 @@ def _c2w(meta: dict[str, Any], path: Path) -> np.ndarray:
     return np.concatenate([u @ vt, c2w[:, 3:]], axis=1)
 
 
-def _camera(meta: dict[str, Any], path: Path) -> pycolmap.Camera:
+def _camera(meta: dict[str, Any], path: Path) -> Camera:
     size = []
     for key in ("W", "H"):
         value = float(_array(meta, key, (), path))
@@ -171,7 +171,7 @@ def _camera(meta: dict[str, Any], path: Path) -> pycolmap.Camera:
         size.append(int(value))
     fx, fy, cx, cy = (float(v) for v in _array(meta, "intrinsics", (4,), path))
     check_intrinsics(f"{path}: field 'intrinsics'", size[0], size[1], fx, fy, cx, cy)
-    return pycolmap.Camera(model="PINHOLE", width=size[0], height=size[1], params=[fx, fy, cx, cy])
+    return Camera(model="PINHOLE", width=size[0], height=size[1], params=[fx, fy, cx, cy])
 
 
 def _image_of(data_dir: Path, split: str, meta_path: Path) -> Path:

@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pycolmap
 
 from hico_plugin.data import images as image_io
+from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.seed_points import seed_points
@@ -85,13 +85,13 @@ class TransformsFormat(DataFormat):
             applied[:3, :] = _matrix(meta["applied_transform"], (3, 4), f"{path.name}: applied_transform")
         to_original = np.linalg.inv(applied)
 
-        cameras: dict[int, pycolmap.Camera] = {}
+        cameras: dict[int, Camera] = {}
         camera_of: dict[tuple, int] = {}
         names, paths, camera_ids, viewmats, masks, depths = [], [], [], [], [], []
         for index, frame, image in entries:
             where = f"{path.name}: frames[{index}]"
             camera = _camera(meta, frame, image, where)
-            key = (camera.model.name, camera.width, camera.height, tuple(np.round(camera.params, 9)))
+            key = (camera.model, camera.width, camera.height, tuple(np.round(camera.params, 9)))
             if key not in camera_of:
                 camera_of[key] = len(cameras) + 1
                 camera.camera_id = camera_of[key]
@@ -128,7 +128,10 @@ class TransformsFormat(DataFormat):
 
 
 def _ply_points(meta: dict, data_dir: Path, path: Path, to_original: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The ``ply_file_path`` cloud in the original world frame: [P, 3] float64, [P, 3] uint8."""
+    """The ``ply_file_path`` cloud in the original world frame: [P, 3] float64, [P, 3] uint8, read by
+    COLMAP's PLY import (pycolmap imported here: only captures with a point cloud file pay for it)."""
+    import pycolmap
+
     ply = resolve_inside(data_dir, str(meta["ply_file_path"]), f"{path.name}: ply_file_path")
     if not ply.is_file():
         raise HicoError(f"{path.name}: ply_file_path {meta['ply_file_path']!r} not found at {ply}")
@@ -157,7 +160,7 @@ def _matrix(value: Any, shape: tuple[int, int], where: str) -> np.ndarray:
     return array
 
 
-def _camera(meta: dict, frame: dict, image: Path, where: str) -> pycolmap.Camera:
+def _camera(meta: dict, frame: dict, image: Path, where: str) -> Camera:
     values = {key: frame.get(key, meta.get(key)) for key in _INTRINSICS}
     width, height = values["w"], values["h"]
     if width is None or height is None:
@@ -189,4 +192,4 @@ def _camera(meta: dict, frame: dict, image: Path, where: str) -> pycolmap.Camera
     params = [float(v) for v in params]
     if not all(math.isfinite(v) for v in params) or width <= 0 or height <= 0 or params[0] <= 0 or params[1] <= 0:
         raise HicoError(f"{where}: intrinsics must be finite with a positive focal length and size")
-    return pycolmap.Camera(model=model, width=width, height=height, params=params)
+    return Camera(model=model, width=width, height=height, params=params)
