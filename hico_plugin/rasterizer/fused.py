@@ -62,13 +62,11 @@ def bin_gaussians_fused(means2d: Tensor, conics: Tensor, reach: Tensor, extents:
     first."""
     num_cams, n = depths.shape
     with torch.no_grad():
-        flat_radii = radii.reshape(-1).to(torch.int32).contiguous()
-        order = torch.argsort(depths.reshape(-1), stable=True)
-        order = order[flat_radii[order] > 0].contiguous()
         gaussian_ids, tile_ids, tile_offsets = EXTENSION.get().bin(
             means2d.detach().reshape(-1, 2).contiguous(), conics.detach().reshape(-1, 3).contiguous(),
-            reach.detach().contiguous(), extents.detach().reshape(-1, 2).contiguous(), flat_radii,
-            order, num_cams, n, width, height, tile_size)
+            reach.detach().contiguous(), extents.detach().reshape(-1, 2).contiguous(),
+            radii.reshape(-1).to(torch.int32).contiguous(), depths.detach().reshape(-1).contiguous(),
+            num_cams, n, width, height, tile_size)
     return TileBins(gaussian_ids, tile_ids, tile_offsets, -(-width // tile_size),
                     -(-height // tile_size), tile_size)
 

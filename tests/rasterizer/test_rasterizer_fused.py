@@ -190,6 +190,20 @@ def test_fused_binning_equals_torch_binning(tile_size, spread, log_scale):
         assert want.gaussian_ids.numel() > 500  # the case is not vacuous
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_binning_keeps_torch_order_on_depth_ties(dtype):
+    """Equal depths (and -0 beside +0, NaN) keep index order within a tile, as a stable argsort does."""
+    proj, _ = projected_scene(400, seed=5, num_cams=2)
+    depths = (proj.depths * 2).round() / 2  # a handful of distinct depths: ties everywhere
+    depths[0, :7] = torch.tensor([0.0, -0.0, 0.0, -0.0, float("nan"), float("nan"), -1.0])
+    args = [t.to(dtype) if t.is_floating_point() else t for t in
+            (proj.means2d, proj.conics, proj.reach, proj.extents, depths.to(proj.depths), proj.radii)]
+    want, got = bin_gaussians(*args, 64, 48, 16), bin_gaussians_fused(*args, 64, 48, 16)
+    assert want.gaussian_ids.numel() > 400
+    for name in ("gaussian_ids", "tile_ids", "tile_offsets"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+
+
 def test_fused_binning_of_nothing():
     proj, _ = projected_scene(0, seed=0, num_cams=2)
     bins = bin_gaussians_fused(proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths,

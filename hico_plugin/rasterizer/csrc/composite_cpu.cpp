@@ -649,10 +649,12 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
 }
 
 // ----- binning --------------------------------------------------------------------------------------
-// The same intersections as tiling.py's vectorised bin_gaussians, in the same order: Gaussians are
-// visited in the given depth order, each one's tile rectangle is enumerated and the tiles its ellipse
-// misses are dropped (the same float arithmetic as _ellipse_meets_tile); a counting sort by tile keeps
-// depth order within each tile. Two parallel passes (count, fill) and one serial scatter.
+// The same intersections as tiling.py's vectorised bin_gaussians, in the same order: each Gaussian's
+// tile rectangle is enumerated and the tiles its ellipse misses are dropped (the same float arithmetic
+// as _ellipse_meets_tile); the Gaussians that reach a tile are ordered by depth with a stable LSD radix
+// sort (ties by index, as torch's stable argsort), and a counting sort by tile keeps depth order within
+// each tile. The per-Gaussian passes run in index order, so their reads are sequential; only the
+// writes of the second pass land in depth order.
 
 struct TileRect {
   int64_t tx0, tx1, ty0, ty1;
@@ -690,22 +692,58 @@ bool ellipse_meets_tile(scalar_t mx, scalar_t my, scalar_t a, scalar_t b, scalar
   return best <= reach * reach;
 }
 
+// An unsigned integer whose order is the float's order as torch's sort sees it: negatives flipped and
+// the sign bit set on the rest, -0 made +0 (equal keys keep index order) and every NaN the largest key.
+template <typename scalar_t>
+using key_t = std::conditional_t<sizeof(scalar_t) == 4, uint32_t, uint64_t>;
+
+template <typename scalar_t>
+key_t<scalar_t> order_key(scalar_t x) {
+  using K = key_t<scalar_t>;
+  if (std::isnan(x)) return ~K(0);
+  x = x + scalar_t(0);  // -0 + 0 = +0 under IEEE round-to-nearest
+  K bits;
+  std::memcpy(&bits, &x, sizeof(K));
+  const K sign = K(1) << (8 * sizeof(K) - 1);
+  return (bits & sign) ? ~bits : (bits | sign);
+}
+
+// Stable LSD radix sort of ids by key, 8 bits a pass; a pass whose byte is the same everywhere is skipped.
+template <typename K>
+void radix_sort(std::vector<K>& keys, std::vector<int64_t>& ids) {
+  const size_t count = keys.size();
+  std::vector<K> keys_tmp(count);
+  std::vector<int64_t> ids_tmp(count);
+  for (size_t shift = 0; shift < 8 * sizeof(K); shift += 8) {
+    size_t hist[257] = {0};
+    for (size_t i = 0; i < count; ++i) ++hist[((keys[i] >> shift) & 0xff) + 1];
+    if (std::any_of(hist + 1, hist + 257, [&](size_t h) { return h == count; })) continue;
+    for (int b = 0; b < 256; ++b) hist[b + 1] += hist[b];
+    for (size_t i = 0; i < count; ++i) {
+      const size_t at = hist[(keys[i] >> shift) & 0xff]++;
+      keys_tmp[at] = keys[i];
+      ids_tmp[at] = ids[i];
+    }
+    keys.swap(keys_tmp);
+    ids.swap(ids_tmp);
+  }
+}
+
 template <typename scalar_t>
 void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& reach,
-              const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& order,
+              const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& depths,
               int64_t n, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,
               int64_t tiles_y, std::vector<int64_t>& hit_gaussians, std::vector<int64_t>& hit_tiles) {
   const scalar_t* m = means2d.data_ptr<scalar_t>();
   const scalar_t* cn = conics.data_ptr<scalar_t>();
   const scalar_t* rc = reach.data_ptr<scalar_t>();
   const scalar_t* ext = extents.data_ptr<scalar_t>();
+  const scalar_t* dp = depths.data_ptr<scalar_t>();
   const int32_t* rad = radii.data_ptr<int32_t>();
-  const int64_t* ord = order.data_ptr<int64_t>();
-  const int64_t count = order.size(0);
+  const int64_t total = depths.numel();
 
-  // visit(k, emit): every tile of the k-th Gaussian in depth order that its ellipse reaches
-  auto visit = [&](int64_t k, auto&& emit) {
-    const int64_t g = ord[k];
+  // visit(g, emit): every tile of Gaussian g that its ellipse reaches
+  auto visit = [&](int64_t g, auto&& emit) {
     if (rad[g] <= 0) return;
     const TileRect r =
         tile_rect<scalar_t>(m[2 * g], m[2 * g + 1], ext[2 * g], ext[2 * g + 1], width, height, tile_size);
@@ -715,47 +753,63 @@ void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
       for (int64_t tx = r.tx0; tx <= r.tx1; ++tx) {
         if (ellipse_meets_tile<scalar_t>(m[2 * g], m[2 * g + 1], cn[3 * g], cn[3 * g + 1],
                                          cn[3 * g + 2], rc[g % n], tx, ty, tile_size)) {
-          emit(base + ty * tiles_x + tx, g);
+          emit(base + ty * tiles_x + tx);
         }
       }
     }
   };
-  std::vector<int64_t> counts(count + 1, 0);
-  at::parallel_for(0, count, 1024, [&](int64_t begin, int64_t end) {
-    for (int64_t k = begin; k < end; ++k) {
+  std::vector<int64_t> counts(total, 0);
+  at::parallel_for(0, total, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) {
       int64_t c = 0;
-      visit(k, [&](int64_t, int64_t) { ++c; });
-      counts[k + 1] = c;
+      visit(g, [&](int64_t) { ++c; });
+      counts[g] = c;
     }
   });
-  for (int64_t k = 0; k < count; ++k) counts[k + 1] += counts[k];
-  hit_gaussians.resize(counts[count]);
-  hit_tiles.resize(counts[count]);
-  at::parallel_for(0, count, 1024, [&](int64_t begin, int64_t end) {
-    for (int64_t k = begin; k < end; ++k) {
-      int64_t at = counts[k];
-      visit(k, [&](int64_t tile, int64_t g) { hit_tiles[at] = tile; hit_gaussians[at] = g; ++at; });
+  using K = key_t<scalar_t>;
+  std::vector<K> keys;
+  std::vector<int64_t> order;
+  for (int64_t g = 0; g < total; ++g) {
+    if (counts[g] > 0) {
+      keys.push_back(order_key(dp[g]));
+      order.push_back(g);
+    }
+  }
+  radix_sort(keys, order);
+  std::vector<int64_t> start(total, 0);  // first hit of each Gaussian, in depth order
+  int64_t hits = 0;
+  for (const int64_t g : order) {
+    start[g] = hits;
+    hits += counts[g];
+  }
+  hit_gaussians.resize(hits);
+  hit_tiles.resize(hits);
+  at::parallel_for(0, total, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) {
+      if (counts[g] == 0) continue;
+      int64_t at = start[g];
+      visit(g, [&](int64_t tile) { hit_tiles[at] = tile; hit_gaussians[at] = g; ++at; });
     }
   });
 }
 
 std::vector<at::Tensor> bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& reach,
-                            const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& order,
+                            const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& depths,
                             int64_t num_cams, int64_t n, int64_t width, int64_t height,
                             int64_t tile_size) {
-  // means2d [G,2], conics [G,3], extents [G,2], radii [G] int32 (G = C * N flattened), reach [N],
-  // order [G'] int64: Gaussians in depth order -> gaussian_ids [I], tile_ids [I], tile_offsets [T+1]
-  for (const at::Tensor* t : {&means2d, &conics, &reach, &extents, &radii, &order}) {
+  // means2d [G,2], conics [G,3], extents [G,2], depths [G], radii [G] int32 (G = C * N flattened),
+  // reach [N] -> gaussian_ids [I], tile_ids [I], tile_offsets [T+1]
+  for (const at::Tensor* t : {&means2d, &conics, &reach, &extents, &radii, &depths}) {
     TORCH_CHECK(t->device().is_cpu() && t->is_contiguous(), "bin_cpu: inputs must be contiguous CPU tensors");
   }
-  TORCH_CHECK(radii.scalar_type() == at::kInt && order.scalar_type() == at::kLong,
-              "bin_cpu: radii must be int32 and order int64");
+  TORCH_CHECK(radii.scalar_type() == at::kInt, "bin_cpu: radii must be int32");
+  TORCH_CHECK(depths.scalar_type() == means2d.scalar_type(), "bin_cpu: depths must have the means' dtype");
   const int64_t tiles_x = (width + tile_size - 1) / tile_size;
   const int64_t tiles_y = (height + tile_size - 1) / tile_size;
   const int64_t num_tiles = num_cams * tiles_x * tiles_y;
   std::vector<int64_t> gaussians, tiles;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_cpu", [&] {
-    bin_impl<scalar_t>(means2d, conics, reach, extents, radii, order, n, width, height, tile_size,
+    bin_impl<scalar_t>(means2d, conics, reach, extents, radii, depths, n, width, height, tile_size,
                        tiles_x, tiles_y, gaussians, tiles);
   });
   // Counting sort by tile, stable: depth order survives within each tile.
