@@ -24,8 +24,10 @@ The child context uses the same relation ("child of" is the transpose of "parent
 cell is the weighted mean of the finer anchors that have it as a parent candidate, with their weights.
 
 The relation itself (which cells, which weights) is context_graph.py's; this module pools features
-along it. Cost per view: a filter of the cached relation and three sparse products each way, O(V + E);
-the sort over cell keys is paid only when an anchor changes cell (context_graph.ContextIndex).
+along it. Cost per view, O(V + E): on CPU, context_fused.py's compiled kernel builds the view's relation
+(a hash of its cells) and pools along it in one pass each way; elsewhere, a filter of the cached relation
+(the sort over cell keys paid only when an anchor changes cell, context_graph.ContextIndex) and three
+sparse products each way, the reference the kernel is tested against.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from torch import Tensor, nn
 
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
+from hico_plugin.field.context_fused import fused_context, pooled_triplet, view_graph
 from hico_plugin.field.context_graph import PARENT_RULES, ContextGraph, ContextIndex, ParentRule
 from hico_plugin.field.octree import OctreeGrid
 from hico_plugin.registry import Registry
@@ -104,6 +107,8 @@ def context_triplet(features: Tensor, graph: ContextGraph, reduce: str = "mean",
                     missing: Tensor | None = None) -> Tensor:
     """The MLP input [V,3,d]: (c_parent, c_self, c_child), with missing [2,d] (parent, child rows)
     where a context is absent under the trilinear rule (zeros if missing is None)."""
+    if reduce == "mean" and fused_context(features.device):
+        return pooled_triplet(features, graph, missing)
     found = context_lookup(features, graph, reduce)
     parent, child = found.parent, found.child
     if graph.rule.nests and missing is not None:
@@ -160,6 +165,8 @@ class ContextAggregator(nn.Module):
 
     def graph(self, levels: Tensor, positions: Tensor, visible: Tensor, grid: OctreeGrid) -> ContextGraph:
         """levels [N], positions [N,3] of all anchors, visible [V] ascending -> the view's graph."""
+        if fused_context(positions.device):
+            return view_graph(levels, positions, visible, grid, self.config.parent_rule)
         if self._index is None or self._index.grid is not grid:
             self._index = ContextIndex(grid, self.config.parent_rule)
         return self._index.view(levels, positions, visible)
