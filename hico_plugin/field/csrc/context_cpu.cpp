@@ -178,10 +178,10 @@ std::vector<at::Tensor> build_graph(const at::Tensor& keys, const at::Tensor& ed
   auto kept_t = at::empty({num_kept}, long_opts);
   int64_t* an = anchor.data_ptr<int64_t>();
   int64_t* ec = edge_cell.data_ptr<int64_t>();
+  std::copy(kept.begin(), kept.end(), kept_t.data_ptr<int64_t>());
   for (int64_t i = 0; i < num_kept; ++i) {
     an[i] = ea[kept[size_t(i)]];
     ec[i] = found[size_t(kept[size_t(i)])];
-    kept_t.data_ptr<int64_t>()[i] = kept[size_t(i)];
   }
   auto weight = edge_weight.index_select(0, kept_t);
   return {cell, count, anchor, edge_cell, weight, order_by(ec, num_kept, num_cells), order_by(c, num, num_cells)};
