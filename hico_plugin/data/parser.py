@@ -6,7 +6,7 @@ import hashlib
 import json
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional
 
@@ -149,6 +149,12 @@ class DataParserConfig(InstantiateConfig):
                 raise HicoError(f"{data_dir}: camera {camera_id} loads at {width}x{height} px; expected "
                                 f"at least {MIN_LOADED_SIZE}x{MIN_LOADED_SIZE} (lower --downscale)")
         check_image_sizes(image_paths, [sources[camera_id].full_size for camera_id in record.camera_ids])
+        if record.seed_points_at is not None:  # the slow step, once every check above has passed
+            points, colors = record.seed_points_at(notes, max(1, _long_side(record) // downscale))
+            record = replace(record, points=points, point_colors=colors, seed_points_at=None)
+        if len(record.points) == 0:
+            raise HicoError(f"{data_dir}: the dataset has no seed points (expected a point cloud, e.g. "
+                            "sparse/0/points3D with points, or transforms.json's ply_file_path)")
         viewmats_world = torch.from_numpy(record.viewmats)
         points_world = torch.from_numpy(record.points)
         transform = SceneTransform.identity()
@@ -190,7 +196,7 @@ class DataParserConfig(InstantiateConfig):
         return dataset
 
     def _auto_downscale(self, record: SceneRecord, notes: list[str]) -> int:
-        long_side = max(max(camera.width, camera.height) for camera in record.cameras.values())
+        long_side = _long_side(record)
         factor = 1
         while long_side / factor > self.max_long_side:
             factor *= 2
@@ -297,3 +303,8 @@ class DataParserConfig(InstantiateConfig):
 
 def _downscaled(size: tuple[int, int], factor: int) -> tuple[int, int]:
     return max(1, round(size[0] / factor)), max(1, round(size[1] / factor))
+
+
+def _long_side(record: SceneRecord) -> int:
+    """The longest side, in pixels, of the record's full-resolution photos."""
+    return max(max(camera.width, camera.height) for camera in record.cameras.values())

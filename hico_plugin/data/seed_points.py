@@ -15,6 +15,11 @@ from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.triangulate import MIN_POINTS, triangulate_known_poses
 
 
+def no_points() -> tuple[np.ndarray, np.ndarray]:
+    """Empty [0, 3] float64 points and [0, 3] uint8 colours."""
+    return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
+
+
 def camera_centres(viewmats: np.ndarray) -> np.ndarray:
     """[N, 4, 4] world->camera -> [N, 3] camera centres in the world."""
     rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3:]
@@ -43,13 +48,14 @@ def random_seed_points(viewmats: np.ndarray, count: int, source: str, reason: st
 
 def seed_points(data_dir: Path, names: list[str], camera_ids: list[int], cameras: dict[int, Camera],
                 viewmats: np.ndarray, source: str, triangulate: bool, random_count: int,
-                notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+                notes: list[str], long_side: int) -> tuple[np.ndarray, np.ndarray]:
     """Seed points of a posed image set without a point cloud: triangulated from the known poses
-    (``names`` are image paths relative to ``data_dir``), else ``random_count`` random points; the
-    warning for the fallback is appended to ``notes``. ``source`` names the dataset file in it."""
+    (``names`` are image paths relative to ``data_dir``) with the photos read at ``long_side`` pixels,
+    the size they are trained at, else ``random_count`` random points; the warning for the fallback is
+    appended to ``notes``. ``source`` names the dataset file in it."""
     reason = "triangulation is off (--no-triangulate)"
     if triangulate:
-        points, colors = triangulate_known_poses(data_dir, names, camera_ids, cameras, viewmats)
+        points, colors = triangulate_known_poses(data_dir, names, camera_ids, cameras, viewmats, long_side)
         if len(points) >= MIN_POINTS:
             notes.append(f"{source}: no seed points in the dataset; triangulated {len(points)} from the known poses")
             return points, colors

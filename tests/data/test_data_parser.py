@@ -334,7 +334,8 @@ for root in (pinhole, distorted):
     dataset.tracks.observations()
 # transforms.json whose triangulated seed points are cached (as a second run finds them)
 record = TransformsFormat(triangulate=False).read(transforms)
-key = _cache_key(transforms, record.names, record.camera_ids, record.cameras, record.viewmats)
+long_side = max(max(camera.width, camera.height) for camera in record.cameras.values())  # loaded at full size
+key = _cache_key(transforms, record.names, record.camera_ids, record.cameras, record.viewmats, long_side)
 cache_dir().mkdir(parents=True)
 np.savez(cache_dir() / f"{key}.npz", points=np.random.default_rng(0).normal(size=(200, 3)),
          colors=np.zeros((200, 3), np.uint8))

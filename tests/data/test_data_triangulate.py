@@ -110,5 +110,26 @@ def test_cache_key_is_the_one_pycolmap_cameras_gave(tmp_path):
         [[1, theirs.model.name, theirs.width, theirs.height, [round(float(v), 9) for v in theirs.params]]],
         np.round(viewmats, 9).tolist(),
     ])
-    assert triangulate._cache_key(tmp_path, ["a.jpg"], [1], {1: camera}, viewmats) == (
+    assert triangulate._cache_key(tmp_path, ["a.jpg"], [1], {1: camera}, viewmats, triangulate.MAX_IMAGE_SIZE) == (
         hashlib.sha1(source.encode()).hexdigest()[:16])
+
+
+def test_features_are_extracted_at_the_size_the_photos_are_trained_at(twin, tmp_path, monkeypatch):
+    """SIFT reads the photos at the size --downscale / --max-long-side loads them (finer features would
+    not seed that training better, and cost time with the pixels), never above MAX_IMAGE_SIZE."""
+    from hico_plugin.data import triangulate
+
+    _, out = twin
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    sizes = []
+
+    def record(*args):
+        sizes.append(args[-2])  # (..., work, long_side, num_threads)
+        return np.random.default_rng(0).normal(size=(MIN_POINTS, 3)), np.zeros((MIN_POINTS, 3), np.uint8)
+
+    monkeypatch.setattr(triangulate, "_triangulate", record)
+    DataParserConfig(data=out, normalize=False, max_long_side=200).setup(announce=False)  # 320x240 -> 1/2
+    DataParserConfig(data=out, normalize=False, downscale=4).setup(announce=False)
+    monkeypatch.setattr(triangulate, "MAX_IMAGE_SIZE", 100)
+    DataParserConfig(data=out, normalize=False, downscale=1).setup(announce=False)
+    assert sizes == [160, 80, 100]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,9 @@ class SceneRecord:
     viewmats: np.ndarray  # [N, 4, 4] float64 world->camera, OpenCV axes (x right, y down, z forward)
     points: np.ndarray  # [P, 3] float64 seed points in the same world frame
     point_colors: np.ndarray  # [P, 3] uint8
+    # A layout without a point cloud leaves points empty and gives this instead: (notes, long side in px
+    # the photos load at) -> (points, colors), called by the parser once it has chosen that size
+    seed_points_at: Callable[[list[str], int], tuple[np.ndarray, np.ndarray]] | None = None
     mask_paths: list[Path | None] | None = None  # [N] white = keep; None: the default masks/ folder
     depth_paths: list[Path | None] | None = None  # [N] metric depth maps (.npy/.png) when the format has them
     tracks: Any = None  # SfM tracks (data.colmap.SfmTracks) when the format has them, for analyses

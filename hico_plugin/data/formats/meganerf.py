@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.checks import check_intrinsics
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
-from hico_plugin.data.seed_points import seed_points
+from hico_plugin.data.seed_points import no_points, seed_points
 from hico_plugin.errors import HicoError
 
 DRB_FROM_SOURCE = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # P above; P @ P = I
@@ -97,12 +98,12 @@ class MegaNerfFormat(DataFormat):
         if not names:
             raise HicoError(f"{data_dir / 'train' / 'metadata'}: no .pt files (expected one per training image)")
         viewmats = np.stack(viewmats)
-        notes: list[str] = []
-        points, colors = seed_points(data_dir, names, camera_ids, cameras, viewmats, f"{data_dir} (Mega-NeRF)",
-                                     self.triangulate, self.random_points, notes)
+        points, colors = no_points()
         return SceneRecord(
             names=names, image_paths=paths, camera_ids=camera_ids, cameras=cameras, viewmats=viewmats,
-            points=points, point_colors=colors, notes=notes, test_names=test_names,
+            points=points, point_colors=colors, test_names=test_names,
+            seed_points_at=partial(seed_points, data_dir, names, camera_ids, cameras, viewmats,
+                                   f"{data_dir} (Mega-NeRF)", self.triangulate, self.random_points),
         )
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from hico_plugin.data import images as image_io
 from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
-from hico_plugin.data.seed_points import seed_points
+from hico_plugin.data.seed_points import no_points, seed_points
 from hico_plugin.errors import HicoError
 
 _INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "camera_model",
@@ -114,14 +115,16 @@ class TransformsFormat(DataFormat):
             depths.append(resolve_inside(data_dir, str(frame["depth_file_path"]), f"{where}.depth_file_path")
                           if frame.get("depth_file_path") else None)
         viewmats = np.stack(viewmats)
+        seeds_at = None
         if meta.get("ply_file_path"):
             points, colors = _ply_points(meta, data_dir, path, to_original)
         else:
-            points, colors = seed_points(data_dir, names, camera_ids, cameras, viewmats, path.name, self.triangulate,
-                                         self.random_points, notes)
+            points, colors = no_points()
+            seeds_at = partial(seed_points, data_dir, names, camera_ids, cameras, viewmats, path.name,
+                               self.triangulate, self.random_points)
         return SceneRecord(
             names=names, image_paths=paths, camera_ids=camera_ids, cameras=cameras, viewmats=viewmats,
-            points=points, point_colors=colors, mask_paths=masks,
+            points=points, point_colors=colors, seed_points_at=seeds_at, mask_paths=masks,
             depth_paths=depths if any(d is not None for d in depths) else None,
             has_ground_truth=(data_dir / "ground_truth").is_dir(), notes=notes,
         )

@@ -45,7 +45,9 @@ class NerfSyntheticFormat(DataFormat):
             camera_ids=pick(train.camera_ids + [camera_id + offset for camera_id in test.camera_ids]),
             cameras={**train.cameras, **{camera.camera_id: camera for camera in test.cameras.values()}},
             viewmats=np.concatenate([train.viewmats, test.viewmats])[views],
-            points=train.points, point_colors=train.point_colors, test_names=list(test.names),
+            # the training split's seed points (transforms.json has none: made once the loading size is known)
+            points=train.points, point_colors=train.point_colors, seed_points_at=train.seed_points_at,
+            test_names=list(test.names),
             notes=train.notes + test.notes,
         )
 
