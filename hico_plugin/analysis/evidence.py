@@ -120,14 +120,24 @@ def sampled_views(dataset: Any) -> np.ndarray:
 
 
 def group_median(groups: np.ndarray, values: np.ndarray, num_groups: int) -> np.ndarray:
-    """Per-group, per-channel median: groups [N], values [N,3] -> [num_groups,3] (0 for empty groups)."""
+    """Per-group, per-channel median: groups [N] in [0, num_groups), values [N,C] -> [num_groups,C]
+    float64 (0 for an empty group, NaN for a group holding a NaN), equal to ``np.median`` of each group.
+
+    One sort by (group, value) per channel instead of a median per group: the photo-gain fit takes
+    medians over every point and every view several times, tens of thousands of groups a call."""
+    counts = np.bincount(groups, minlength=num_groups)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    filled = counts > 0
+    # the middle pair of each group (the same element twice when the count is odd)
+    lower = (starts + (counts - 1) // 2)[filled]
+    upper = (starts + counts // 2)[filled]
     out = np.zeros((num_groups, values.shape[1]))
-    order = np.argsort(groups, kind="stable")
-    groups, values = groups[order], values[order]
-    bounds = np.searchsorted(groups, np.arange(num_groups + 1))
-    for g in range(num_groups):
-        lo, hi = bounds[g], bounds[g + 1]
-        if hi > lo:
-            out[g] = np.median(values[lo:hi], axis=0)
+    for c in range(values.shape[1]):
+        column = values[:, c]
+        ordered = column[np.lexsort((column, groups))]
+        # np.median's arithmetic: the middle element, or the mean of the middle two in the values' dtype
+        out[filled, c] = np.where(lower == upper, ordered[lower], (ordered[lower] + ordered[upper]) / 2)
+        has_nan = np.bincount(groups, weights=np.isnan(column), minlength=num_groups) > 0
+        out[has_nan, c] = np.nan
     return out
 
