@@ -150,7 +150,8 @@ class DataParserConfig(InstantiateConfig):
                                 f"at least {MIN_LOADED_SIZE}x{MIN_LOADED_SIZE} (lower --downscale)")
         check_image_sizes(image_paths, [sources[camera_id].full_size for camera_id in record.camera_ids])
         if record.seed_points_at is not None:  # the slow step, once every check above has passed
-            points, colors = record.seed_points_at(notes, max(1, _long_side(record) // downscale))
+            long_side = _long_side(record)  # at the loading size, the rule _downscaled applies to the photos
+            points, colors = record.seed_points_at(notes, max(_downscaled((long_side, long_side), downscale)))
             record = replace(record, points=points, point_colors=colors, seed_points_at=None)
         if len(record.points) == 0:
             raise HicoError(f"{data_dir}: the dataset has no seed points (expected a point cloud, e.g. "
