@@ -180,7 +180,7 @@ class ProgressLines(TrainerCallback):
         self.clock = clock
         self._start = self._timing_start = self._last = 0.0
         self._first_step = 0
-        self._pixel_steps = lambda start, stop: float(stop - start)
+        self._full_steps = lambda start, stop: float(stop - start)
 
     def _print(self, text: str) -> None:
         print(text, file=self.stream, flush=True)
@@ -189,12 +189,12 @@ class ProgressLines(TrainerCallback):
         self._start = self._last = self.clock()
         self._first_step = step
         if trainer is not None:
-            # Under the coarse-to-fine schedule a step costs in proportion to its pixels, so the time
-            # left is counted in full-resolution steps, not steps.
+            # Under the coarse-to-fine schedule a step's cost grows with its pixels, so the time left
+            # is counted in full-resolution steps, not steps.
             cameras = trainer.dataset.cameras
             long_side = int(max(cameras.widths.max(), cameras.heights.max()))
             schedule, max_steps = trainer.config.resolution, self.max_steps
-            self._pixel_steps = lambda start, stop: schedule.pixel_steps(start, stop, max_steps, long_side)
+            self._full_steps = lambda start, stop: schedule.full_steps(start, stop, max_steps, long_side)
         self._print(f"train: {self.max_steps - step} steps to go; timing the first {self.timed_steps} for an estimate")
 
     def on_step_end(self, step: int, metrics: dict[str, float]) -> None:
@@ -206,7 +206,7 @@ class ProgressLines(TrainerCallback):
             per_step = (now - self._timing_start) / self.timed_steps
             remaining = per_step * self._left_over(self._first_step + 1, step + 1)
             scale = metrics.get("resolution_scale", 1.0)
-            coarse = (f", images at {scale:.2f} of full size, later steps counted by their pixels"
+            coarse = (f", images at {scale:.2f} of full size, later steps weighed by their pixels"
                       if scale < 1.0 else "")
             self._print(f"train: expected wall time {_duration(now - self._start + remaining)} "
                         f"({per_step:.2f} s/step over steps 2-{done}{coarse}; {_duration(remaining)} left)")
@@ -223,8 +223,8 @@ class ProgressLines(TrainerCallback):
 
     def _left_over(self, timed_from: int, next_step: int) -> float:
         """Steps left after ``next_step - 1``, in units of the mean step of ``timed_from..next_step-1``."""
-        timed = self._pixel_steps(timed_from, next_step)
-        return self._pixel_steps(next_step, self.max_steps) * (next_step - timed_from) / max(timed, 1e-12)
+        timed = self._full_steps(timed_from, next_step)
+        return self._full_steps(next_step, self.max_steps) * (next_step - timed_from) / max(timed, 1e-12)
 
 
 def _duration(seconds: float) -> str:

@@ -69,33 +69,36 @@ def test_progress_lines_print_the_expected_wall_time_from_the_first_steps():
     for step in range(10):
         now[0] += 2.0
         lines.on_step_end(step, {"loss": 0.5, "resolution_scale": 0.5})
-    assert "over steps 2-6, images at 0.50 of full size, later steps counted by their pixels;" in coarse.getvalue()
+    assert "over steps 2-6, images at 0.50 of full size, later steps weighed by their pixels;" in coarse.getvalue()
 
 
-def test_under_the_resolution_schedule_the_time_left_is_counted_in_pixels():
-    """A step whose time follows its pixels (4 s at full size) is foreseen exactly from the first,
-    quarter-size steps; counted in steps, the estimate would be under half the run."""
+def test_under_the_resolution_schedule_the_time_left_is_counted_in_full_steps():
+    """A step whose time is a fixed part plus a part that follows its pixels (4 s at full size) is
+    foreseen exactly from the first, small steps; counted in steps the estimate would be far too low,
+    counted in pixels alone far too high."""
     import io
     from types import SimpleNamespace
 
     import torch
 
     from hico_plugin.engine.callbacks import ProgressLines
-    from hico_plugin.engine.resolution import ResolutionSchedule
+    from hico_plugin.engine.resolution import FIXED_STEP_SHARE, ResolutionSchedule
 
-    schedule = ResolutionSchedule(start_scale=0.5)
+    schedule = ResolutionSchedule(start_scale=0.25, min_long_side=0)
     trainer = SimpleNamespace(config=SimpleNamespace(resolution=schedule), dataset=SimpleNamespace(
         cameras=SimpleNamespace(widths=torch.tensor([960, 960]), heights=torch.tensor([540, 540]))))
-    cost = [4.0 * schedule.scale(step, 100, 960) ** 2 for step in range(100)]
+    scales = [schedule.scale(step, 100, 960) for step in range(100)]
+    cost = [4.0 * (FIXED_STEP_SHARE + (1 - FIXED_STEP_SHARE) * scale ** 2) for scale in scales]
     now = [0.0]
     out = io.StringIO()
     lines = ProgressLines(max_steps=100, timed_steps=5, every_seconds=1e9, stream=out, clock=lambda: now[0])
     lines.on_train_start(trainer, 0)
     for step in range(100):
         now[0] += cost[step]
-        lines.on_step_end(step, {"loss": 0.5, "resolution_scale": schedule.scale(step, 100, 960)})
-    total = sum(cost)  # 314 s, foreseen as 5:14 at step 6
+        lines.on_step_end(step, {"loss": 0.5, "resolution_scale": scales[step]})
+    total = sum(cost)
+    assert scales[1] == 0.25  # timed on quarter-size images
     expected = [line for line in out.getvalue().splitlines() if "expected wall time" in line][0]
-    assert f"expected wall time {int(total) // 60}:{round(total) % 60:02d} " in expected
-    assert schedule.pixel_steps(0, 100, 100, 960) == total / 4.0
-    assert ResolutionSchedule().pixel_steps(3, 10, 100, 960) == 7.0  # no schedule: every step full size
+    assert f"expected wall time {round(total) // 60}:{round(total) % 60:02d} " in expected
+    assert abs(schedule.full_steps(0, 100, 100, 960) - total / 4.0) < 1e-9
+    assert ResolutionSchedule().full_steps(3, 10, 100, 960) == 7.0  # no schedule: every step full size
