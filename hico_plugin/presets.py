@@ -67,15 +67,15 @@ def _lite() -> HiCoTrainerConfig:
     gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. And photos larger
     than 320 px train coarse to fine (``ResolutionSchedule``: from a quarter of the size, but never
     below a 320 px long side, to full size at 85 % of the steps, about when densification stops);
-    smaller photos, such as the built-in scenes', train at full size throughout. And octree levels only where they measured better than one flat level
-    (``lod_rule="measured"``): views at different distances and runs of 1,000 steps or more. And the
-    coarse-to-fine levels all switch on by a sixth of the run (``coarse_steps`` 5,000 reference steps)
-    instead of CityGS-X's third: a short run spends too few steps on its finest levels otherwise
-    (city-block, seeds 0-2: +0.17 +- 0.06 dB paired, normal error unchanged, 27 % more anchors);
-    ``--model.field.coarse-steps 10000`` restores the paper's schedule. The length buys quality for time:
-    3,500 steps against 3,000 scored +0.21 / +0.19 / +0.03 dB on city-block (seeds 0-2, 29.34 dB mean),
-    normal error lower on each seed, for 1.20x the wall time (seed 0, back to back) and about 5 % more
-    anchors; ``--max-steps 3000`` is the shorter run."""
+    smaller photos, such as the built-in scenes', train at full size throughout. And octree levels only
+    where they measured better than one flat level (``lod_rule="measured"``): views at different
+    distances and runs of 1,000 steps or more. And the coarse-to-fine levels all switch on by a sixth of
+    the run (``coarse_steps`` 5,000 reference steps) instead of CityGS-X's third: a short run spends too
+    few steps on its finest levels otherwise (city-block, seeds 0-2: +0.17 +- 0.06 dB paired, normal
+    error unchanged, 27 % more anchors); ``--model.field.coarse-steps 10000`` restores the paper's
+    schedule. The length buys quality for time: 3,500 steps against 3,000 scored +0.21 / +0.19 / +0.03
+    dB on city-block (seeds 0-2, 29.34 dB mean), normal error lower on each seed, for 1.20x the wall
+    time (seed 0, back to back) and about 5 % more anchors; ``--max-steps 3000`` is the shorter run."""
     config = _with(_paper(), "hico-gs-lite", max_steps=3_500, eval_every=0, save_every=500,
                    resolution=ResolutionSchedule(start_scale=0.25, full_at=0.85, min_long_side=320))
     field = config.model.field

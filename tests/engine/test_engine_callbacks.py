@@ -74,8 +74,7 @@ def test_progress_lines_print_the_expected_wall_time_from_the_first_steps():
 
 def test_under_the_resolution_schedule_the_time_left_is_counted_in_full_steps():
     """A step whose time is a fixed part plus a part that follows its pixels (4 s at full size) is
-    foreseen exactly from the first, small steps; counted in steps the estimate would be far too low,
-    counted in pixels alone far too high."""
+    foreseen exactly from the first, quarter-size steps."""
     import io
     from types import SimpleNamespace
 
