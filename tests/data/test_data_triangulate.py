@@ -105,8 +105,8 @@ def test_cache_key_is_the_one_pycolmap_cameras_gave(tmp_path):
     theirs = pycolmap.Camera(model="OPENCV", width=1080, height=1920, params=list(camera.params))
     stat = (tmp_path / "a.jpg").stat()
     source = json.dumps([
-        triangulate.CACHE_VERSION, triangulate.MAX_FEATURES, triangulate.MAX_IMAGE_SIZE, triangulate.EXHAUSTIVE_UP_TO,
-        triangulate.SPATIAL_NEIGHBOURS, str(tmp_path.resolve()), [["a.jpg", stat.st_size, stat.st_mtime_ns]], [1],
+        triangulate.CACHE_VERSION, triangulate.MAX_FEATURES, triangulate.MAX_IMAGE_SIZE, triangulate.POSE_NEIGHBOURS,
+        triangulate.POSE_MAX_ANGLE, str(tmp_path.resolve()), [["a.jpg", stat.st_size, stat.st_mtime_ns]], [1],
         [[1, theirs.model.name, theirs.width, theirs.height, [round(float(v), 9) for v in theirs.params]]],
         np.round(viewmats, 9).tolist(),
     ])
@@ -133,3 +133,49 @@ def test_features_are_extracted_at_the_size_the_photos_are_trained_at(twin, tmp_
     monkeypatch.setattr(triangulate, "MAX_IMAGE_SIZE", 100)
     DataParserConfig(data=out, normalize=False, downscale=1).setup(announce=False)
     assert sizes == [160, 80, 100]
+
+
+def _look(centre: np.ndarray, yaw_degrees: float) -> np.ndarray:
+    """World->camera viewmat (OpenCV axes) of a level camera at ``centre`` looking along +x turned by yaw."""
+    yaw = np.radians(yaw_degrees)
+    forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    rotation = np.stack([np.cross(down, forward), down, forward])  # rows: camera x, y, z in the world
+    viewmat = np.eye(4)
+    viewmat[:3, :3], viewmat[:3, 3] = rotation, -rotation @ centre
+    return viewmat
+
+
+def test_pose_pairs_match_only_cameras_near_and_looking_the_same_way():
+    from hico_plugin.data.triangulate import pose_pairs
+
+    # a camera turning in place every 30 degrees: equal centres, so only the axes choose
+    turning = np.stack([_look(np.zeros(3), 30 * k) for k in range(12)])
+    assert pose_pairs(turning, neighbours=5, max_angle=45) == sorted(
+        (min(k, (k + 1) % 12), max(k, (k + 1) % 12)) for k in range(12))
+    # a line of cameras all looking one way: each with its two nearest along the line
+    line = np.stack([_look(np.array([0.0, float(k), 0.0]), 0) for k in range(8)])
+    assert pose_pairs(line, neighbours=2) == sorted({(min(i, j), max(i, j)) for i in range(8)
+                                                     for j in (i - 1, i + 1) if 0 <= j < 8} | {(0, 2), (5, 7)})
+    # fewer cameras than neighbours: every pair within the angle, none twice
+    assert pose_pairs(line[:4], neighbours=20) == [(i, j) for i in range(4) for j in range(i + 1, 4)]
+
+
+def test_photos_named_with_spaces_are_paired_by_their_centres(twin, tmp_path, monkeypatch, capsys):
+    """COLMAP's pair list cannot hold a name with a space: such a set is matched by COLMAP's spatial
+    matcher on the camera centres instead, and still triangulates onto the surface."""
+    scene, out = twin
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    spaced = tmp_path / "spaced"
+    (spaced / "my photos").mkdir(parents=True)
+    meta = json.loads((out / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        name = "my photos/" + frame["file_path"].split("/")[-1].replace("_", " ")
+        shutil.copy(out / frame["file_path"], spaced / name)
+        frame["file_path"] = name
+    (spaced / "transforms.json").write_text(json.dumps(meta))
+    dataset = DataParserConfig(data=spaced, normalize=False).setup()
+    assert "random" not in capsys.readouterr().err
+    distance = _surface_distances(scene, dataset.points.double().numpy())
+    assert len(distance) >= MIN_POINTS
+    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
