@@ -17,7 +17,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -54,6 +54,9 @@ class EvalArgs:
     mesh: Path | None = None
     """Mesh scored against the scene's ground-truth surface when it has one (P / R / F1 / chamfer);
     default RUN/exports/mesh.ply (hico-export ... mesh) when it exists."""
+    lpips: Literal["vgg", "alex", "none"] | None = None
+    """LPIPS backbone to score with (default the run's --model.eval-lpips: alex for hico-gs-lite, vgg,
+    as CityGS-X reports it, for the paper's presets)."""
     data: Path | None = None
     """Score on the test views of this dataset instead of the run's own: the same views (image names)
     in the same scene frame, with their own photos and cameras, read with the run's data settings;
@@ -107,6 +110,8 @@ def main(args: EvalArgs) -> dict[str, Any]:
     if args.mesh is not None and not args.mesh.is_file():
         raise HicoError(f"--mesh: {args.mesh} is not a file (expected a PLY written by hico-export ... mesh)")
     run = load_run(args.load_config, args.checkpoint, args.device)
+    if args.lpips is not None:
+        run.model.config = dataclasses.replace(run.model.config, eval_lpips=args.lpips)
     dataset = run.dataset if args.data is None else other_dataset(run, args.data)
     indices = [int(i) for i in dataset.test_indices]
     if not indices:

@@ -113,7 +113,7 @@ class HiCoModelConfig(InstantiateConfig):
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""
-    eval_lpips: str = "vgg"
+    eval_lpips: Literal["vgg", "alex", "none"] = "vgg"
     """LPIPS backbone at evaluation ("vgg" as CityGS-X, "alex", or "none" to skip it)."""
     optimizers: dict[str, ParamGroupOptimizerConfig] = dataclass_field(default_factory=default_optimizers)
     """Adam learning-rate schedule per parameter group (groups of effects that are off are unused; a

