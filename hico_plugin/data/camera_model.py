@@ -201,3 +201,9 @@ class Camera:
         """The plain copy of a camera pycolmap made (its undistorter's, for the models only it evaluates)."""
         return cls(camera_id=camera.camera_id, model=camera.model.name, width=camera.width, height=camera.height,
                    params=camera.params)
+
+
+def camera_centres(viewmats: np.ndarray) -> np.ndarray:
+    """[N, 4, 4] world->camera -> [N, 3] camera centres in the world."""
+    rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3:]
+    return -(np.transpose(rotations, (0, 2, 1)) @ translations)[..., 0]

@@ -11,19 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from hico_plugin.data.camera_model import Camera
+from hico_plugin.data.camera_model import Camera, camera_centres
 from hico_plugin.data.triangulate import MIN_POINTS, triangulate_known_poses
 
 
 def no_points() -> tuple[np.ndarray, np.ndarray]:
     """Empty [0, 3] float64 points and [0, 3] uint8 colours."""
     return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
-
-
-def camera_centres(viewmats: np.ndarray) -> np.ndarray:
-    """[N, 4, 4] world->camera -> [N, 3] camera centres in the world."""
-    rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3:]
-    return -(np.transpose(rotations, (0, 2, 1)) @ translations)[..., 0]
 
 
 def random_points(viewmats: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hico_plugin.data.camera_model import Camera
+from hico_plugin.data.camera_model import Camera, camera_centres
 
 MIN_POINTS = 100
 """Fewer triangulated points than this and the caller falls back to random points."""
@@ -101,6 +101,7 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
     # COLMAP's pair list splits a line at spaces and skips lines starting with '#'; names it cannot
     # hold are paired by COLMAP's spatial matcher on the camera centres instead (no angle limit).
     listable = not any(name.startswith("#") or any(c.isspace() for c in name) for name in names)
+    centres = camera_centres(viewmats)
     reconstruction = pycolmap.Reconstruction()
     with pycolmap.Database.open(database) as db:
         images = db.read_all_images()
@@ -115,8 +116,7 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
                 pycolmap.Rigid3d(viewmats[i, :3, :4]),
             )
             if not listable:
-                rotation, translation = viewmats[i, :3, :3], viewmats[i, :3, 3]
-                prior = pycolmap.PosePrior(position=-rotation.T @ translation,
+                prior = pycolmap.PosePrior(position=centres[i],
                                            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN)
                 prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, image.camera_id),
                                                      image.frame_id)
@@ -153,9 +153,8 @@ def pose_pairs(viewmats: np.ndarray, neighbours: int = POSE_NEIGHBOURS,
     """Image pairs (i < j) worth matching, from the poses alone: each image with its ``neighbours``
     nearest cameras by centre among those whose optical axis is within ``max_angle`` degrees of its
     own, as hloc's ``pairs_from_poses`` chooses them. viewmats: [N, 4, 4] world->camera, OpenCV axes."""
-    rotations = viewmats[:, :3, :3]
-    centres = -np.einsum("nji,nj->ni", rotations, viewmats[:, :3, 3])
-    axes = rotations[:, 2] / np.linalg.norm(rotations[:, 2], axis=1, keepdims=True)  # viewing directions
+    centres = camera_centres(viewmats)
+    axes = viewmats[:, 2, :3] / np.linalg.norm(viewmats[:, 2, :3], axis=1, keepdims=True)  # viewing directions
     pairs = set()
     for start in range(0, len(viewmats), PAIR_BLOCK):  # [block, N] at a time: thousands of photos fit
         rows = slice(start, start + PAIR_BLOCK)
