@@ -27,7 +27,7 @@ import hico_plugin.presets  # noqa: F401  (loads the config classes a config.yml
 from hico_plugin.cli import run_cli
 from hico_plugin.cli.render import FrameRequest
 from hico_plugin.engine import LoadedRun, evaluate, load_run, write_eval_json
-from hico_plugin.engine.checkpoints import check_frame, dataset_frame, load_checkpoint
+from hico_plugin.engine.checkpoints import check_frame, load_checkpoint
 from hico_plugin.engine.data import load_view
 from hico_plugin.errors import HicoError
 from hico_plugin.export.frames import write_png
@@ -74,14 +74,16 @@ def other_dataset(run: LoadedRun, data: Path) -> Any:
     same image names, so a view keeps its index and appearance slot) in the checkpoint's scene frame."""
     if not dataclasses.is_dataclass(run.config.data) or not hasattr(run.config.data, "data"):
         raise HicoError(f"--data: the run's data config ({type(run.config.data).__name__}) reads no dataset folder")
-    dataset = dataclasses.replace(run.config.data, data=Path(data)).setup(announce=False)
+    payload = load_checkpoint(run.checkpoint, mmap=True)
+    frame = {"frame": payload["frame"]} if payload.get("frame") is not None else {}
+    dataset = dataclasses.replace(run.config.data, data=Path(data)).setup(announce=False, **frame)
     ours, theirs = list(run.dataset.image_names), list(dataset.image_names)
     if ours != theirs:
         differ = sorted(set(ours) ^ set(theirs)) or ["(the same names in another order)"]
         raise HicoError(f"--data {data}: holds other views than the run's dataset ({len(theirs)} images against "
                         f"{len(ours)}; e.g. {differ[0]}); it must hold the same views under the same names")
     try:
-        check_frame(load_checkpoint(run.checkpoint, mmap=True), dataset_frame(dataset), run.checkpoint)
+        check_frame(payload, dataset, run.checkpoint)
     except HicoError as err:
         raise HicoError(f"--data {data}: {err}") from None
     return dataset

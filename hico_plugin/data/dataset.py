@@ -16,7 +16,7 @@ from hico_plugin.data import images as image_io
 from hico_plugin.data.cache import ByteLRUCache
 from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.paths import resolve_inside
-from hico_plugin.data.transform import SceneTransform
+from hico_plugin.data.transform import SceneTransform, frame_differences
 from hico_plugin.data.undistort import PINHOLE_MODELS, remap, undistortion_maps
 from hico_plugin.errors import HicoError
 from hico_plugin.field.octree import MAX_SEED_POINTS, anchor_seed_points, distance_range
@@ -204,6 +204,11 @@ class Dataset:
         """The scene frame the views are loaded in (the normalisation); checkpoints record it, so a model
         is never loaded into another one (engine.checkpoints.check_frame)."""
         return self.transform.to_dict()
+
+    def frame_differences(self, stored: dict) -> list[str]:
+        """The parts in which a checkpoint's recorded ``frame()`` places the cameras elsewhere than this
+        dataset's (``data.transform.frame_differences``); empty when its model can be loaded here."""
+        return frame_differences(stored, self.frame())
 
     def cameras_extent(self) -> float:
         """NeRF++ radius of the train cameras: 1.1 x the largest distance of a centre from their mean

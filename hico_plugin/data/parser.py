@@ -22,7 +22,7 @@ from hico_plugin.data.dataset import CameraSource, Dataset
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.splits import extrapolation_split, sparse_views
-from hico_plugin.data.transform import SceneTransform
+from hico_plugin.data.transform import SceneTransform, frame_differences
 from hico_plugin.data.undistort import calibration_matrix, pinhole_of, rescaled
 from hico_plugin.errors import HicoError
 
@@ -103,8 +103,8 @@ class DataParserConfig(InstantiateConfig):
         self.test_list = Path(self.test_list) if self.test_list is not None else None
         self.test_names = tuple(self.test_names)
 
-    def setup(self, announce: bool = True, **kwargs: Any) -> Dataset:
-        return self.parse(announce)
+    def setup(self, announce: bool = True, frame: dict | None = None, **kwargs: Any) -> Dataset:
+        return self.parse(announce, frame)
 
     def validate(self) -> None:
         """A HicoError for an argument that is wrong whatever the dataset holds: checked before the
@@ -120,10 +120,15 @@ class DataParserConfig(InstantiateConfig):
         if self.orient_method not in ("manhattan", "vertical", "up"):
             raise HicoError(f"--orient-method: expected manhattan, vertical or up, got '{self.orient_method}'")
 
-    def parse(self, announce: bool = True) -> Dataset:
+    def parse(self, announce: bool = True, frame: dict | None = None) -> Dataset:
         """Read, check and normalise the dataset; images stay on disk until first used. The notes the
         reading made (frames skipped, the automatic downscale, ...) are printed when ``announce``, and kept
-        in ``Dataset.notes`` either way: a trainer prints them only once every refusal is behind it."""
+        in ``Dataset.notes`` either way: a trainer prints them only once every refusal is behind it.
+
+        ``frame``: the scene frame a checkpoint was trained in (``Dataset.frame()``): the views are loaded
+        in it when today's normalisation places the cameras the same (``frame_differences``; the heading
+        from re-triangulated seed points may differ a little), else in today's, which the caller's
+        ``check_frame`` then refuses."""
         self.validate()
         data_dir = self.data
         record = (self.format or detect_format(data_dir)).read(data_dir)
@@ -162,6 +167,8 @@ class DataParserConfig(InstantiateConfig):
         if self.normalize:
             transform = SceneTransform.from_cameras(viewmats_world, points=points_world, orient=self.orient,
                                                     orient_method=self.orient_method)
+        if frame is not None and not frame_differences(frame, transform.to_dict()):
+            transform = SceneTransform.from_dict(frame)
         pinholes = [sources[camera_id].pinhole for camera_id in record.camera_ids]
         cameras = Cameras(
             viewmats=transform.viewmats_from_colmap(viewmats_world).to(torch.float32),

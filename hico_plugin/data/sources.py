@@ -27,11 +27,11 @@ class DataSourceConfig(DataParserConfig):
         self.test_names = tuple(self.test_names)
         self.test_list = Path(self.test_list) if self.test_list is not None else None
 
-    def setup(self, announce: bool = True, **kwargs: Any) -> Dataset:
+    def setup(self, announce: bool = True, frame: dict | None = None, **kwargs: Any) -> Dataset:
         if self.data is not None:
-            return super().setup(announce, **kwargs)
+            return super().setup(announce, frame, **kwargs)
         from hico_plugin.scenes.generate import generate_scene
 
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(DataParserConfig)}
         fields["data"] = generate_scene(self.scene)
-        return DataParserConfig(**fields).parse(announce)
+        return DataParserConfig(**fields).parse(announce, frame)

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -189,3 +191,31 @@ class SceneTransform:
     def from_dict(cls, data: dict) -> SceneTransform:
         rotation = torch.tensor(data.get("rotation", torch.eye(3).tolist()), dtype=torch.float64)
         return cls(torch.tensor(data["centre"], dtype=torch.float64), float(data["scale"]), rotation)
+
+
+def _close(a: Any, b: Any) -> bool:
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    try:
+        return bool(np.allclose(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64), rtol=1e-6, atol=1e-9))
+    except (TypeError, ValueError):
+        return a == b
+
+
+def frame_differences(stored: dict, today: dict) -> list[str]:
+    """The parts (keys of ``SceneTransform.to_dict``) in which a recorded frame and one computed today
+    place the cameras differently, sorted; empty when a model of ``stored`` can be loaded in ``stored``.
+
+    The centre, the scale and the up axis (the rotation's last row) come from the cameras alone, so a
+    difference there means other cameras or another rule. The heading about the up axis comes from the
+    seed points, which a fresh triangulation (an emptied cache, another machine) reproduces only to
+    within its random sampling, so it is not compared: the recorded one is kept."""
+    keys = set(stored) | set(today)
+    changed = []
+    for key in keys:
+        a, b = stored.get(key), today.get(key)
+        if key == "rotation" and a is not None and b is not None:
+            a, b = np.asarray(a, dtype=np.float64)[-1], np.asarray(b, dtype=np.float64)[-1]
+        if not _close(a, b):
+            changed.append(key)
+    return sorted(changed)

@@ -166,23 +166,17 @@ def dataset_frame(dataset: Any) -> dict[str, Any] | None:
     return frame() if callable(frame) else None
 
 
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
-    try:
-        return bool(np.allclose(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64), rtol=1e-6, atol=1e-9))
-    except (TypeError, ValueError):
-        return a == b
-
-
-def check_frame(payload: dict[str, Any], frame: dict[str, Any] | None, path: Path) -> None:
-    """Refuse a checkpoint trained in another frame than the one the dataset is loaded in today (say the
-    normalisation changed since): its weights would render and resume silently wrong."""
+def check_frame(payload: dict[str, Any], dataset: Any, path: Path) -> None:
+    """Refuse a checkpoint trained in another frame than the one ``dataset`` is loaded in today (say the
+    cameras or the normalisation's rule changed since): its weights would render and resume silently
+    wrong. The dataset judges which differences matter (its ``frame_differences(stored)``: the parts
+    that differ); a dataset without frames is not checked."""
     stored = payload.get("frame")
-    if stored is None or frame is None:  # checkpoints from before frames were recorded; frameless data
+    differences = getattr(dataset, "frame_differences", None)
+    if stored is None or not callable(differences):  # checkpoints from before frames were recorded; frameless data
         return
-    if not _same(stored, frame):
-        changed = sorted(k for k in set(stored) | set(frame) if not _same(stored.get(k), frame.get(k)))
+    changed = differences(stored)
+    if changed:
         raise HicoError(f"{path}: the model was trained in another scene frame than the dataset is loaded in "
                         f"now ({', '.join(changed)} differ); load it with the settings and version it was trained with")
 

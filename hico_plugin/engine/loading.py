@@ -13,7 +13,7 @@ from typing import Any
 from torch import nn
 
 from hico_plugin.engine.checkpoints import (
-    check_frame, dataset_frame, load_checkpoint, newest_readable_checkpoint, restore_model, seed_everything)
+    check_frame, load_checkpoint, newest_readable_checkpoint, restore_model, seed_everything)
 from hico_plugin.engine.config_io import load_config
 from hico_plugin.engine.distributed import resolve_device
 from hico_plugin.engine.trainer import TrainerConfig
@@ -60,8 +60,8 @@ def load_run(config_path: str | Path, checkpoint: str | Path | None = None, devi
     seed_everything(config.seed)
     # Cameras and points only, so a checkpoint of another frame is refused before the data analyses
     # and the model's setup, and before anything else is printed.
-    dataset = config.build_dataset(announce=False)
-    check_frame(payload, dataset_frame(dataset), path)
+    dataset = config.build_dataset(announce=False, frame=payload.get("frame"))
+    check_frame(payload, dataset, path)
     for note in getattr(dataset, "notes", ()):
         print(note, file=sys.stderr)
     model = config.build_model(dataset, resolve_device(device or config.device))

@@ -131,13 +131,16 @@ class TrainerConfig(InstantiateConfig):
     def wants_tensorboard(self) -> bool:
         return "tensorboard" in self.vis
 
-    def build_dataset(self, announce: bool = True) -> TrainDataset:
+    def build_dataset(self, announce: bool = True, frame: dict | None = None) -> TrainDataset:
         """The dataset: cameras, poses and seed points parsed, images left on disk (cheap, so the checks
         that need the dataset's frame or size run before the model is built). Its notes are printed
-        when ``announce``."""
+        when ``announce``. ``frame``: a checkpoint's scene frame to load the views in (``data.setup``
+        takes it as ``frame=``), None to normalise afresh."""
         if self.data is None or self.model is None:
             raise HicoError("config: 'data' and 'model' must be set to build a run")
-        return self.data.setup(announce=announce)
+        if frame is None:
+            return self.data.setup(announce=announce)
+        return self.data.setup(announce=announce, frame=frame)
 
     def build_model(self, dataset: TrainDataset, device: torch.device) -> TrainableModel:
         """The model of ``dataset`` on ``device`` (the slow part: data analyses, the model's setup)."""
@@ -219,9 +222,9 @@ class Trainer:
                 payload = load_checkpoint(latest)
             seed_everything(config.seed)
             if dataset is None:
-                dataset = config.build_dataset(announce=False)
+                dataset = config.build_dataset(announce=False, frame=(payload or {}).get("frame"))
             if payload is not None:
-                check_frame(payload, dataset_frame(dataset), latest)
+                check_frame(payload, dataset, latest)
             self._check_free_space(dataset)
             if self.is_main:
                 if config.resume and latest is None:

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from hico_plugin.data.transform import SceneTransform, scene_heading, scene_up
+from hico_plugin.data.transform import SceneTransform, frame_differences, rotation_about_z, rotation_to_z, scene_heading, scene_up
 from hico_plugin.scenes.orbits import look_at
 
 
@@ -95,3 +95,22 @@ def test_heading_turns_the_walls_onto_the_axes_whatever_the_source_heading():
     ring = np.linspace(0, 2 * math.pi, 4000, endpoint=False)
     tower = torch.from_numpy(np.stack([np.cos(ring), np.sin(ring), np.random.default_rng(3).uniform(0, 5, 4000)], axis=1))
     assert scene_heading(tower) == 0.0
+
+
+def test_a_recorded_frame_matches_one_with_another_heading_but_not_other_cameras():
+    """The heading comes from the seed points, which a fresh triangulation reproduces only within its
+    random sampling; the centre, scale and up axis come from the cameras and must agree."""
+    viewmats = torch.from_numpy(_arc(120.0))
+    points = _walls(17.0, seed=0)
+    recorded = SceneTransform.from_cameras(viewmats, points=points).to_dict()
+    today = SceneTransform.from_cameras(viewmats, points=_walls(17.0, seed=1)).to_dict()  # triangulated again
+    assert today["rotation"] != recorded["rotation"]  # the points moved the heading
+    assert frame_differences(recorded, today) == []
+    turned = SceneTransform.from_dict(recorded)
+    turned.rotation = rotation_about_z(0.3) @ turned.rotation
+    assert frame_differences(recorded, turned.to_dict()) == []
+    tilted = SceneTransform.from_dict(recorded)
+    tilted.rotation = rotation_to_z(torch.tensor([0.01, 0.0, 1.0], dtype=torch.float64) / math.hypot(0.01, 1.0)) @ tilted.rotation
+    assert frame_differences(recorded, tilted.to_dict()) == ["rotation"]
+    moved = SceneTransform.from_cameras(viewmats[1:], points=points).to_dict()  # other cameras
+    assert {"centre", "scale"} <= set(frame_differences(recorded, moved))

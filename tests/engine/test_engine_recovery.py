@@ -152,12 +152,14 @@ def test_interrupted_hico_train_exits_130_with_the_resume_command(tmp_path):
     assert latest_checkpoint(tmp_path / "run" / "checkpoints").name == "step-000000003.ckpt"
 
 
-def test_a_checkpoint_from_another_scene_frame_is_refused_in_one_line(tiny_run, tmp_path):
-    """Checkpoints record the dataset's frame (the scene normalisation); loading or resuming one into a
-    dataset normalised differently today (a changed rule, other settings) would be silently wrong."""
+def test_a_checkpoint_loads_in_its_own_frame_and_one_from_another_scene_frame_is_refused(tiny_run, tmp_path):
+    """Checkpoints record the dataset's frame (the scene normalisation). One whose heading differs from
+    today's (seed points triangulated again) loads and resumes in its own frame; loading or resuming one
+    whose cameras sit elsewhere today (a changed rule, other settings) would be silently wrong."""
     import shutil
 
     from hico_plugin.cli.train import parse, train
+    from hico_plugin.data.transform import SceneTransform, rotation_about_z
     from hico_plugin.engine.loading import load_run
 
     run = tmp_path / "run"
@@ -167,11 +169,21 @@ def test_a_checkpoint_from_another_scene_frame_is_refused_in_one_line(tiny_run, 
     checkpoint = sorted((run / "checkpoints").glob("*.ckpt"))[-1]
     payload = torch.load(checkpoint, weights_only=True)
     assert load_run(config).dataset.frame() == payload["frame"]  # recorded, and today's matches
+    turned = SceneTransform.from_dict(payload["frame"])
+    turned.rotation = rotation_about_z(0.004) @ turned.rotation
+    payload["frame"] = turned.to_dict()
+    torch.save(payload, checkpoint)
+    assert load_run(config).dataset.frame() == payload["frame"]
+    args = ["hico-gs-lite", "--scene", "tiny", "--max-steps", "3", "--vis", "none", "--progress", "none",
+            "--output-dir", str(run), "--resume", "--model.eval-lpips", "none", "--model.renderer.no-use-compile"]
+    train(parse(args))
+    checkpoint = sorted((run / "checkpoints").glob("*.ckpt"))[-1]
+    resumed = torch.load(checkpoint, weights_only=True)
+    assert resumed["step"] == 3 and resumed["frame"] == payload["frame"]
+    payload = resumed
     payload["frame"]["scale"] *= 2.0
     torch.save(payload, checkpoint)
     with pytest.raises(HicoError, match=r"another scene frame than the dataset is loaded in now \(scale differ\)"):
         load_run(config)
     with pytest.raises(HicoError, match="another scene frame"):
-        train(parse(["hico-gs-lite", "--scene", "tiny", "--max-steps", "3", "--vis", "none", "--progress", "none",
-                     "--output-dir", str(run), "--resume", "--model.eval-lpips", "none",
-                     "--model.renderer.no-use-compile"]))
+        train(parse(args))
