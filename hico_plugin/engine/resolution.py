@@ -13,6 +13,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -86,6 +88,13 @@ def downscale_batch(batch: TrainBatch, scale: float) -> TrainBatch:
 
 def _resize(images: Tensor, size: tuple[int, int], mode: str) -> Tensor:
     """[B, H, W, C] (any dtype) -> [B, h, w, C] of the same dtype."""
+    if mode == "area" and images.device.type == "cpu" and images.dtype == torch.float32 and images.shape[-1] <= 4:
+        # OpenCV's INTER_AREA averages each output pixel's exact footprint (fractional weights at its
+        # edges), where torch's area mode (adaptive pooling) rounds footprints out to whole pixels; and
+        # it takes 3.4 ms, not 15, to bring a 540x960 photo to 472x840 on two cores.
+        return torch.from_numpy(np.stack([
+            cv2.resize(image.numpy(), (size[1], size[0]), interpolation=cv2.INTER_AREA).reshape(*size, -1)
+            for image in images.contiguous()]))
     channels_first = images.permute(0, 3, 1, 2)
     resized = F.interpolate(channels_first.float(), size=size, mode=mode)
     if images.dtype == torch.bool:

@@ -81,6 +81,18 @@ def test_downscaled_batch_averages_pixels_and_keeps_projection():
     assert downscale_batch(batch, 1.0) is batch
 
 
+def test_a_fractional_downscale_averages_each_pixels_exact_footprint():
+    """At 3/4 a 4x4 block of photo pixels becomes 3x3: the corner pixel's footprint covers one photo pixel
+    whole and a third of three neighbours (weights 9, 3, 3, 1 over 16/9 of a pixel)."""
+    images = torch.rand(1, 8, 8, 3, generator=torch.Generator().manual_seed(1))
+    cameras = [_camera(8, 8)]
+    small = downscale_batch(TrainBatch(cameras=cameras, images=images, indices=torch.tensor([0]), gt={}), 0.75)
+    assert small.images.shape == (1, 6, 6, 3) and small.images.dtype == torch.float32
+    corner = (9 * images[0, 0, 0] + 3 * images[0, 0, 1] + 3 * images[0, 1, 0] + images[0, 1, 1]) / 16
+    torch.testing.assert_close(small.images[0, 0, 0], corner)
+    torch.testing.assert_close(small.images.mean(), images.mean(), atol=1e-6, rtol=0)  # no light lost or added
+
+
 class _SizeRecorder(ToyModel):
     def train_step(self, batch, step):
         self.sizes.append((step, tuple(batch.images.shape[1:3]), batch.cameras[0].width))
