@@ -21,6 +21,7 @@
 #include <cmath>
 #include <limits>
 #include <type_traits>
+#include <memory>
 #include <vector>
 
 #include "expf_cephes.h"
@@ -220,18 +221,28 @@ void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, sc
   });
 }
 
-// The backward's serial last pass: each tile's per-intersection row gradients (rows below the tile's
-// deepest drawn row) added to their Gaussians' in intersection order, whichever thread computed them.
+// The backward's last pass: each tile's per-intersection row gradients (rows below the tile's deepest
+// drawn row) added to their Gaussians' in intersection order, whichever thread computed them. Each
+// thread adds the Gaussians of its own id range (every thread reads the ids, each adds a share of the
+// rows), so every Gaussian's sum runs in the same order whatever the thread count.
 template <typename scalar_t>
 void add_row_grads(const Splats<scalar_t>& s, const std::vector<int32_t>& deepest_of,
-                   const std::vector<scalar_t>& row_grads, int64_t stride, scalar_t* g_all) {
-  for (int64_t t = 0; t < s.num_tiles; ++t) {
-    for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
-      scalar_t* dst = g_all + s.ids[i] * stride;
-      const scalar_t* src = &row_grads[i * stride];
-      for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
+                   const scalar_t* row_grads, int64_t stride, scalar_t* g_all, int64_t num_gaussians) {
+  const int64_t parts = std::max<int64_t>(1, at::get_num_threads());
+  at::parallel_for(0, parts, 1, [&](int64_t p0, int64_t p1) {
+    for (int64_t part = p0; part < p1; ++part) {
+      const int64_t lo = num_gaussians * part / parts, hi = num_gaussians * (part + 1) / parts;
+      for (int64_t t = 0; t < s.num_tiles; ++t) {
+        for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
+          const int64_t g = s.ids[i];
+          if (g < lo || g >= hi) continue;
+          scalar_t* dst = g_all + g * stride;
+          const scalar_t* src = &row_grads[i * stride];
+          for (int64_t k = 0; k < stride; ++k) dst[k] += src[k];
+        }
+      }
     }
-  }
+  });
 }
 
 template <typename scalar_t>
@@ -305,7 +316,7 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
       }
     }
   });
-  add_row_grads(s, deepest_of, row_grads, stride, g_all);
+  add_row_grads(s, deepest_of, row_grads.data(), stride, g_all, grads.size(0));
 }
 
 // ----- float32: a vector of pixels at a time ---------------------------------------------------------
@@ -506,10 +517,13 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
                    const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
                    const at::Tensor& grad_acc, at::Tensor& grads) {
   // As backward_impl; each row's gradient sums its pixels lane by lane, then the lanes (a fixed
-  // order, so the result is still independent of threads and schedule).
+  // order, so the result is still independent of threads and schedule). Every row above a tile's
+  // deepest drawn row gets its gradient written (zeros where it reached no pixel), and add_row_grads
+  // reads no other, so the per-intersection buffer is left unfilled: on a 540x960 view it is tens of MB,
+  // which one thread would otherwise zero every step.
   const int64_t ts = grid.tile_size, pixels = ts * ts, dim = kDim > 0 ? kDim : s.dim, stride = 6 + dim;
   const int64_t padded = pixels + kLanes;
-  std::vector<float> row_grads(s.offsets[s.num_tiles] * stride, 0.f);
+  std::unique_ptr<float[]> row_grads(new float[s.offsets[s.num_tiles] * stride]);
   std::vector<int32_t> deepest_of(s.num_tiles, 0);
   const float* t_p = final_t.data_ptr<float>();
   const int32_t* n_p = n_drawn.data_ptr<int32_t>();
@@ -526,7 +540,7 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
     deepest_of[t] = deepest;
     if (deepest == 0) return;
     const TileRows<float> rows(s, t, deepest, a_min);
-    float* g_rows = &row_grads[s.offsets[t] * stride];
+    float* g_rows = row_grads.get() + s.offsets[t] * stride;
     std::vector<float> trans(padded, 1.f), g_alpha(padded, 0.f), g_color(dim * padded, 0.f);
     std::vector<float> behind((dim + 1) * padded, 0.f);
     std::vector<int32_t> drawn(padded, 0);
@@ -604,13 +618,15 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
           sums[4] += select(shaped, g_sigma * splat(0.5f) * dy * dy, zero);
         }
       }
+      float* g = &g_rows[r * stride];
       if (touched) {
-        float* g = &g_rows[r * stride];
         for (int64_t k = 0; k < stride; ++k) g[k] = hsum(sums[k]);
+      } else {
+        std::fill(g, g + stride, 0.f);
       }
     }
   });
-  add_row_grads(s, deepest_of, row_grads, stride, g_all);
+  add_row_grads(s, deepest_of, row_grads.get(), stride, g_all, grads.size(0));
 }
 
 // Calls fn with std::integral_constant<int, D> for the channel counts the renderer packs (rgb 3;
