@@ -139,7 +139,9 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
                                device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = num_threads
-    options.random_seed = 0  # RANSAC in the triangulator: same inputs, same points
+    # RANSAC in the triangulator: same matches, same points. The matches themselves are verified by
+    # RANSAC on several threads, so a fresh run's points differ a little (hence the cache).
+    options.random_seed = 0
     result = pycolmap.triangulate_points(reconstruction, database, data_dir, work / "model", options=options)
     ordered = [result.points3D[i] for i in sorted(result.points3D)]
     if not ordered:

@@ -88,7 +88,7 @@ def downscale_batch(batch: TrainBatch, scale: float) -> TrainBatch:
 
 def _resize(images: Tensor, size: tuple[int, int], mode: str) -> Tensor:
     """[B, H, W, C] (any dtype) -> [B, h, w, C] of the same dtype."""
-    if mode == "area" and images.device.type == "cpu" and images.dtype == torch.float32 and images.shape[-1] <= 4:
+    if mode == "area" and images.device.type == "cpu" and images.dtype == torch.float32:
         # OpenCV's INTER_AREA averages each output pixel's exact footprint (fractional weights at its
         # edges), where torch's area mode (adaptive pooling) rounds footprints out to whole pixels; and
         # it takes 3.4 ms, not 15, to bring a 540x960 photo to 472x840 on two cores.

@@ -20,8 +20,8 @@
 #include <cstring>
 #include <cmath>
 #include <limits>
-#include <type_traits>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
 #include "expf_cephes.h"
