@@ -39,7 +39,11 @@ class ResolutionSchedule:
     start_scale: float = 1.0
     """Image scale (side length, fraction of full) of the first step; 1.0 turns the schedule off."""
     full_at: float = 0.5
-    """Fraction of max_steps by which the scale has risen (linearly in pixels per view) to 1."""
+    """Fraction of max_steps by which the scale has risen to 1."""
+    ramp_power: float = 1.0
+    """How the pixels per view rise to full_at: in proportion to the run's progress to the power
+    ramp_power. 1 adds the same pixels every stretch of steps (DashGaussian's interpolation between its
+    levels); 2 keeps the images small longer and spends the run's pixels in its last stretch."""
     min_long_side: int = 480
     """Never train on images whose long side is under this many pixels: a schedule that would go
     lower starts at the scale that gives this size instead, and photos this small or smaller train
@@ -50,6 +54,8 @@ class ResolutionSchedule:
             raise HicoError(f"config.resolution.start_scale: expected in (0, 1], got {self.start_scale}")
         if not 0.0 < self.full_at <= 1.0:
             raise HicoError(f"config.resolution.full_at: expected in (0, 1], got {self.full_at}")
+        if self.ramp_power <= 0.0:
+            raise HicoError(f"config.resolution.ramp_power: expected > 0, got {self.ramp_power}")
         if self.min_long_side < 0:
             raise HicoError(f"config.resolution.min_long_side: expected >= 0, got {self.min_long_side}")
 
@@ -60,8 +66,7 @@ class ResolutionSchedule:
         if start >= 1.0:
             return 1.0
         progress = min(1.0, step / max(1.0, self.full_at * max_steps))
-        # Linear in pixels: each stretch of steps adds the same number of pixels per view.
-        pixels = start**2 + (1.0 - start**2) * progress
+        pixels = start**2 + (1.0 - start**2) * progress**self.ramp_power
         # Rounded down, so full resolution starts exactly at full_at (1e-9: 0.25 stays 4 quanta).
         return min(1.0, math.floor(pixels**0.5 / _SCALE_QUANTUM + 1e-9) * _SCALE_QUANTUM)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -42,6 +43,17 @@ def test_schedule_rises_to_full_resolution_by_full_at_and_off_is_one():
     assert all(ResolutionSchedule().scale(step, 1000, 4000) == 1.0 for step in (0, 500, 999))
 
 
+def test_ramp_power_spends_the_pixels_late_and_still_ends_at_full_size():
+    linear, late = ResolutionSchedule(start_scale=0.25, full_at=1.0), ResolutionSchedule(
+        start_scale=0.25, full_at=1.0, ramp_power=2.0)
+    # Half way, the squared ramp has added a quarter of the pixels (side rounded down to 1/16).
+    pixels = 0.25**2 + (1 - 0.25**2) * 0.5**2
+    assert late.scale(500, 1000, 4000) == math.floor(pixels**0.5 * 16) / 16 == 0.5
+    assert all(late.scale(step, 1000, 4000) <= linear.scale(step, 1000, 4000) for step in range(1001))
+    assert late.scale(0, 1000, 4000) == 0.25 and late.scale(1000, 1000, 4000) == 1.0
+    assert late.full_steps(0, 1000, 1000, 4000) < 0.85 * linear.full_steps(0, 1000, 1000, 4000)
+
+
 def test_schedule_never_trains_below_min_long_side():
     schedule = ResolutionSchedule(start_scale=0.25, full_at=0.5, min_long_side=480)
     assert schedule.scale(0, 1000, 960) == 0.5  # starts at 480 px, not 240
@@ -49,7 +61,8 @@ def test_schedule_never_trains_below_min_long_side():
     assert schedule.scale(0, 1000, 1920) == 0.25
 
 
-@pytest.mark.parametrize("field, value", [("start_scale", 0.0), ("start_scale", 1.5), ("full_at", 0.0), ("min_long_side", -1)])
+@pytest.mark.parametrize("field, value", [("start_scale", 0.0), ("start_scale", 1.5), ("full_at", 0.0), ("ramp_power", 0.0),
+                                          ("min_long_side", -1)])
 def test_schedule_out_of_range_names_the_field(field, value):
     with pytest.raises(HicoError, match=f"config.resolution.{field}"):
         ResolutionSchedule(**{field: value}).validate()
