@@ -42,6 +42,7 @@ from hico_plugin.engine.controls import TrainerControls
 from hico_plugin.engine.data import rank_batch
 from hico_plugin.engine.disk_space import check_free_space, run_bytes_needed
 from hico_plugin.engine.evaluation import evaluate, periodic_eval_due, write_eval_json
+from hico_plugin.engine.memory import keep_freed_memory
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import TrainableModel, TrainDataset
 from hico_plugin.engine.resolution import ResolutionSchedule, downscale_batch
@@ -351,6 +352,7 @@ class Trainer:
 
     def _train_loop(self) -> TrainResult:
         config = self.config
+        keep_freed_memory()  # every step frees and reallocates the same large temporaries
         self._run_callbacks("on_train_start", self, self.step)
         nonfinite_streak = 0
         stop, checkpoint, paused = self.controls.flags()
