@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from hico_plugin.config import InstantiateConfig
+from hico_plugin.field.gather import take_rows
 
 
 @dataclass
@@ -145,16 +146,17 @@ class GaussianDecoder(nn.Module):
         if self.appearance is not None:
             code = self.appearance_code(camera_index, inputs)
             color_in = torch.cat([inputs, code.expand(inputs.shape[0], -1)], dim=1)
-        # Only the kept children are needed downstream: evaluate the MLPs per anchor, then gather
-        # (index_select: its backward is a plain index_add).
-        colors = torch.sigmoid(self.mlp_color(color_in)).view(-1, 3).index_select(0, child_rows)
-        cov = self.mlp_cov(inputs).view(-1, 7).index_select(0, child_rows)
+        # Only the kept children are needed downstream: evaluate the MLPs per anchor, then gather the
+        # kept rows (each once: take_rows) and each kept child's anchor (index_select, whose backward
+        # adds the children's gradients).
+        colors = take_rows(torch.sigmoid(self.mlp_color(color_in)).view(-1, 3), child_rows)
+        cov = take_rows(self.mlp_cov(inputs).view(-1, 7), child_rows)
         anchor_scale = scalings.index_select(0, anchor_rows)
         scales = anchor_scale[:, 3:6] * torch.sigmoid(cov[:, :3])
         quats = F.normalize(cov[:, 3:7], dim=-1)
         means = (positions.index_select(0, anchor_rows)
-                 + offsets.reshape(-1, 3).index_select(0, child_rows) * anchor_scale[:, :3])
+                 + take_rows(offsets.reshape(-1, 3), child_rows) * anchor_scale[:, :3])
         return NeuralGaussians(
-            means=means, quats=quats, scales=scales, opacities=opacity.view(-1).index_select(0, child_rows),
+            means=means, quats=quats, scales=scales, opacities=take_rows(opacity.view(-1), child_rows),
             colors=colors, anchor_ids=anchor_ids[anchor_rows], child_ids=child_ids,
             visible_ids=anchor_ids, raw_opacities=opacity.detach(), keep_mask=keep)

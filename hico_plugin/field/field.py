@@ -36,6 +36,7 @@ from hico_plugin.errors import HicoError
 from hico_plugin.field.context import ContextConfig
 from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
 from hico_plugin.field.context_graph import cell_keys
+from hico_plugin.field.gather import take_rows
 from hico_plugin.field.densify import (DensifyConfig, GrownAnchors, close_ancestors, extra_level_increment,
                                        grow_anchors, offset_gradients, prune_decision, rows_in)
 from hico_plugin.field.lod import active_level_count, frustum_visible, lod_visible, progressive_interval_ends
@@ -208,26 +209,26 @@ class AnchorField(nn.Module):
         features = self.enhanced_features(visible_ids, context_enabled)
         drawn = self.drawn.index_select(0, visible_ids)
         if not bool(drawn.all()):
-            features, visible_ids = features[drawn], visible_ids[drawn]
+            rows = drawn.nonzero().squeeze(1)
+            features, visible_ids = take_rows(features, rows), visible_ids.index_select(0, rows)
         return self.decode_features(features, visible_ids, camera.center.to(features), camera.index)
 
     def enhanced_features(self, visible_ids: Tensor, context_enabled: bool = True) -> Tensor:
         """Features [V,d] of the anchors ``visible_ids`` [V] long (ascending), CLCA-enhanced with
         contexts read among those anchors only, unless disabled."""
-        # index_select rather than [ids]: its backward is a plain index_add (much cheaper on CPU).
-        features = self.anchor_features.index_select(0, visible_ids)
+        features = take_rows(self.anchor_features, visible_ids)
         if context_enabled and self.context.reads_context:
             features = self.context(features, self.context.graph(self.levels, self.anchors, visible_ids, self.grid))
         return features
 
     def decode_features(self, features: Tensor, ids: Tensor, eyes: Tensor, appearance_index: int) -> NeuralGaussians:
-        """Neural Gaussians of the anchors ``ids`` [V] long from their (enhanced) features [V,d],
+        """Neural Gaussians of the anchors ``ids`` [V] long (no id twice) from their (enhanced) features [V,d],
         viewed from ``eyes``: [3] one camera centre, or [V,3] one viewpoint per anchor (an export's
         canonical views). appearance_index: the training slot of the appearance embedding (-1: the
         mean, neutral appearance)."""
-        positions = self.anchors.index_select(0, ids)
-        return self.decoder(features, positions, self.offsets.index_select(0, ids),
-                            torch.exp(self.log_scaling.index_select(0, ids)), self.levels.index_select(0, ids),
+        positions = take_rows(self.anchors, ids)
+        return self.decoder(features, positions, take_rows(self.offsets, ids),
+                            torch.exp(take_rows(self.log_scaling, ids)), self.levels.index_select(0, ids),
                             eyes, appearance_index, ids)
 
     # ----- optimisation -----------------------------------------------------------------------------
