@@ -74,7 +74,7 @@ def values_and_grads(fn, means, quats, scales, opacities, viewmats, Ks, normals=
     return projected, [torch.zeros_like(leaf) if leaf.grad is None else leaf.grad for leaf in leaves]
 
 
-def assert_close_per_gaussian(got, want, dtype, name):
+def assert_close_per_gaussian(got, want, dtype, name, tol=None):
     """got == want within TOL[dtype] times the largest magnitude of want's entries of the same Gaussian (and
     camera) -- or 1e-3 of the largest overall, so that one huge gradient does not hide the others' errors --, or
     of all of want for a scalar per Gaussian (depths, distances, reach); exactly where want is all zero."""
@@ -82,17 +82,18 @@ def assert_close_per_gaussian(got, want, dtype, name):
         scalar = name in ("depths", "distances", "reach")
         rows = want.abs().max() if scalar else want.abs().amax(-1, keepdim=True)
         scale = rows.clamp_min(max(1e-3 * want.abs().max().item(), torch.finfo(dtype).tiny))
-        torch.testing.assert_close(got / scale, want / scale, rtol=0, atol=TOL[dtype], msg=name)
+        torch.testing.assert_close(got / scale, want / scale, rtol=0, atol=TOL[dtype] if tol is None else tol,
+                                   msg=name)
 
 
-def assert_matches_reference(*inputs, normals=True, outputs=DIFFERENTIABLE, **kw):
+def assert_matches_reference(*inputs, normals=True, outputs=DIFFERENTIABLE, tol=None, **kw):
     dtype = inputs[0].dtype
     got, got_grads = values_and_grads(project_gaussians_fused, *inputs, normals=normals, outputs=outputs, **kw)
     want, want_grads = values_and_grads(reference, *inputs, normals=normals, outputs=outputs, **kw)
     for name in DIFFERENTIABLE[:4 + 2 * normals] + ("reach", "extents"):
         a, b = getattr(got, name), getattr(want, name)
         assert a.shape == b.shape and a.dtype == b.dtype, name
-        assert_close_per_gaussian(a, b, dtype, name)
+        assert_close_per_gaussian(a, b, dtype, name, tol)
     if not normals:
         assert got.normals is None and got.distances is None
     assert got.radii.dtype == torch.int32 and not got.extents.requires_grad
@@ -102,7 +103,7 @@ def assert_matches_reference(*inputs, normals=True, outputs=DIFFERENTIABLE, **kw
     assert differ.float().mean() < 1e-3
     for name, a, b in zip(("means", "quats", "scales"), got_grads, want_grads):
         assert torch.isfinite(a).all(), f"grad {name}: not finite"
-        assert_close_per_gaussian(a, b, dtype, f"grad {name}")
+        assert_close_per_gaussian(a, b, dtype, f"grad {name}", tol)
     return got, got_grads
 
 
@@ -201,7 +202,10 @@ def test_city_scale_coordinates(dtype):
     viewmats, Ks = cameras(2, torch.float64)
     viewmats[:, :3, 3] -= (viewmats[:, :3, :3] @ offset)
     inputs = [t.to(dtype) for t in (means + offset, quats, scales, opacities, viewmats, Ks)]
-    got, _ = assert_matches_reference(*inputs)
+    # In float64 the world coordinates (1.4e5) carry 1.4e5 x 2^-52 = 3e-11 of rounding into camera
+    # coordinates of about 1, and the torch reference's matrix product (a BLAS that fuses multiply-adds,
+    # as on AVX-512 CPUs) rounds them differently from the kernel's loop: 3e-11 apart, both right.
+    got, _ = assert_matches_reference(*inputs, tol=None if dtype == torch.float32 else 1e-9)
     assert got.radii.gt(0).sum() > 300
     local = project_gaussians_fused(*(t.to(dtype) for t in (means, quats, scales, opacities, *cameras(2, dtype))),
                                     WIDTH, HEIGHT)
