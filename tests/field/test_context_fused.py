@@ -57,13 +57,14 @@ def test_graph_equals_the_reference_graph(rule, seed):
 
 @pytest.mark.parametrize("rule", ["trilinear", "paper"])
 @pytest.mark.parametrize("with_missing", [True, False])
-def test_triplet_and_gradients_equal_the_reference(rule, with_missing, monkeypatch):
-    features, levels, positions = anchors(3, dim=16)
+@pytest.mark.parametrize("dim", [16, 32])  # 32, the features' width, has its own unrolled loops
+def test_triplet_and_gradients_equal_the_reference(rule, with_missing, dim, monkeypatch):
+    features, levels, positions = anchors(3, dim=dim)
     visible = torch.arange(0, 400, 2)
     graph = view_graph(levels, positions, visible, GRID, ParentRule(rule))
     ref_graph = ContextIndex(GRID, rule).view(levels, positions, visible)
     gen = torch.Generator().manual_seed(7)
-    missing = torch.randn(2, 16, generator=gen) if with_missing else None
+    missing = torch.randn(2, dim, generator=gen) if with_missing else None
     outs, grads = [], []
     for g, fn in ((graph, lambda f, m: context_triplet(f, graph, "mean", m)),
                   (ref_graph, lambda f, m: reference_triplet(f, ref_graph, m, monkeypatch))):
@@ -72,7 +73,7 @@ def test_triplet_and_gradients_equal_the_reference(rule, with_missing, monkeypat
         out = fn(f, m)
         out.backward(torch.randn(out.shape, generator=torch.Generator().manual_seed(9)))
         outs.append(out.detach())
-        grads.append((f.grad, m.grad if (with_missing and m.grad is not None) else torch.zeros(2, 16)))
+        grads.append((f.grad, m.grad if (with_missing and m.grad is not None) else torch.zeros(2, dim)))
     torch.testing.assert_close(outs[0], outs[1])
     torch.testing.assert_close(grads[0][0], grads[1][0])
     torch.testing.assert_close(grads[0][1], grads[1][1])
@@ -90,7 +91,8 @@ def test_gradcheck_float64(rule):
 
 
 def test_hard_cases():
-    """No anchors, only coarsest-level anchors (no parent edges), one anchor, huge coordinates."""
+    """No anchors, only coarsest-level anchors (no parent edges), one anchor, huge coordinates (grid
+    indices beyond 16 bits: the wide cell table)."""
     for num, max_level in ((0, 4), (30, 1), (1, 4)):
         gen = torch.Generator().manual_seed(num)
         levels = torch.randint(0, max_level, (num,), generator=gen)
@@ -122,3 +124,14 @@ def test_outputs_do_not_depend_on_the_thread_count():
     finally:
         torch.set_num_threads(before)
     assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+
+
+@pytest.mark.parametrize("shift", [8181.5, -8191.5, 8200.0])
+def test_graph_at_the_packed_keys_edge(shift):
+    """Grid indices close to the packed cell table's 16-bit range (up to 32,765 and down to -32,767 on the
+    finest level) and just past it (32,839: the wide table) give the reference graph."""
+    _, levels, positions = anchors(7, num=300, dtype=torch.float64, origin_shift=shift)
+    keys = ContextIndex(GRID, "trilinear").view(levels, positions, torch.arange(300))
+    got = view_graph(levels, positions, torch.arange(300), GRID, ParentRule.trilinear)
+    for a, b in zip(canonical(got), canonical(keys)):
+        assert torch.equal(a, b)

@@ -17,60 +17,100 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
-#include <array>
 #include <cstdint>
 #include <vector>
 
 namespace {
 
-using Key = std::array<int64_t, 4>;
+// Open-addressing hash tables from a cell key to its dense id (linear probing, power-of-two capacity),
+// each slot holding its key next to its id, so a probe reads one place in memory. CellTable packs a key
+// into 64 bits (16 per part: level and grid index each in [-2^15, 2^15), an octree up to 32,768 finest
+// cells a side), a 16-byte slot; WideCellTable keeps the four parts (40 bytes) for anchors beyond that.
+// find(key, insert): the key's id, inserting it with the next id when absent (insert) or returning -1.
+bool pack_key(const int64_t* key, uint64_t& packed) {
+  packed = 0;
+  for (int i = 0; i < 4; ++i) {
+    if (key[i] < -32768 || key[i] > 32767) return false;
+    packed = (packed << 16) | uint64_t(uint16_t(key[i]));
+  }
+  return true;
+}
 
-// Open-addressing hash table from a cell key to its dense id (linear probing, power-of-two capacity).
+uint64_t mix(uint64_t x) {  // splitmix64's finaliser
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebULL;
+  return x ^ (x >> 31);
+}
+
+uint64_t table_mask(int64_t expected) {
+  int64_t capacity = 16;
+  while (capacity < 2 * expected) capacity <<= 1;
+  return uint64_t(capacity - 1);
+}
+
 class CellTable {
  public:
-  explicit CellTable(int64_t expected) {
-    int64_t capacity = 16;
-    while (capacity < 2 * expected) capacity <<= 1;
-    mask_ = uint64_t(capacity - 1);
-    slots_.assign(size_t(capacity), -1);
-  }
+  explicit CellTable(int64_t expected) : mask_(table_mask(expected)), slots_(size_t(mask_ + 1), Slot{0, -1}) {}
 
-  // The key's id, inserting it with the next id when absent (insert) or returning -1 (lookup).
-  int64_t find(const Key& key, bool insert) {
-    uint64_t at = hash(key) & mask_;
-    while (true) {
-      const int64_t id = slots_[at];
-      if (id < 0) {
+  // Every key of an inserted anchor must pack (build_graph checks); a lookup key that does not pack
+  // cannot equal one and is absent.
+  int64_t find(const int64_t* key, bool insert) {
+    uint64_t packed;
+    if (!pack_key(key, packed)) return -1;
+    for (uint64_t at = mix(packed) & mask_;; at = (at + 1) & mask_) {
+      Slot& slot = slots_[at];
+      if (slot.id < 0) {
         if (!insert) return -1;
-        slots_[at] = int64_t(keys_.size());
-        keys_.push_back(key);
-        return slots_[at];
+        slot = Slot{packed, size_++};
+        return slot.id;
       }
-      if (keys_[size_t(id)] == key) return id;
-      at = (at + 1) & mask_;
+      if (slot.key == packed) return slot.id;
     }
   }
 
-  int64_t size() const { return int64_t(keys_.size()); }
+  int64_t size() const { return size_; }
 
  private:
-  static uint64_t hash(const Key& key) {
-    uint64_t h = 0x9e3779b97f4a7c15ULL;
-    for (const int64_t part : key) {
-      h ^= uint64_t(part) + 0x9e3779b97f4a7c15ULL + (h << 6) + (h >> 2);
-      h *= 0xff51afd7ed558ccdULL;
-    }
-    return h ^ (h >> 33);
-  }
-
+  struct Slot {
+    uint64_t key;
+    int64_t id;
+  };
   uint64_t mask_;
-  std::vector<int64_t> slots_;
-  std::vector<Key> keys_;
+  std::vector<Slot> slots_;
+  int64_t size_ = 0;
 };
 
-Key key_at(const int64_t* keys, int64_t row) {
-  return {keys[4 * row], keys[4 * row + 1], keys[4 * row + 2], keys[4 * row + 3]};
-}
+class WideCellTable {
+ public:
+  explicit WideCellTable(int64_t expected) : mask_(table_mask(expected)), slots_(size_t(mask_ + 1)) {}
+
+  int64_t find(const int64_t* key, bool insert) {
+    uint64_t h = 0x9e3779b97f4a7c15ULL;
+    for (int i = 0; i < 4; ++i) h = mix(h ^ uint64_t(key[i]));
+    for (uint64_t at = h & mask_;; at = (at + 1) & mask_) {
+      Slot& slot = slots_[at];
+      if (slot.id < 0) {
+        if (!insert) return -1;
+        slot = Slot{{key[0], key[1], key[2], key[3]}, size_++};
+        return slot.id;
+      }
+      if (slot.key[0] == key[0] && slot.key[1] == key[1] && slot.key[2] == key[2] && slot.key[3] == key[3]) {
+        return slot.id;
+      }
+    }
+  }
+
+  int64_t size() const { return size_; }
+
+ private:
+  struct Slot {
+    int64_t key[4];
+    int64_t id = -1;
+  };
+  uint64_t mask_;
+  std::vector<Slot> slots_;
+  int64_t size_ = 0;
+};
 
 void check_keys(const at::Tensor& keys, const char* what) {
   TORCH_CHECK(keys.device().is_cpu() && keys.is_contiguous() && keys.scalar_type() == at::kLong &&
@@ -85,45 +125,75 @@ int64_t floor_div(int64_t a, int64_t b) {
 
 // The 1-8 grid points of level l-1 around a level-l anchor with index k (k / fork in level-(l-1) units)
 // with their trilinear weights, corners in x-slowest order, zero weights left out (parent_edges).
+// Two passes over the anchors, each split among the threads: count each anchor's corners, then write
+// them at the anchor's offset (the prefix sum of the counts), so the order is the serial loop's.
+template <typename scalar_t>
+struct Corners {
+  int64_t base[3];
+  scalar_t weight[8];
+
+  // shift: log2(fork) when fork is a power of two (the octree's 2), else -1 (integer division)
+  Corners(const int64_t* key, int64_t fork, int shift) {
+    scalar_t axis[3][2];
+    for (int i = 0; i < 3; ++i) {
+      base[i] = shift >= 0 ? key[1 + i] >> shift : floor_div(key[1 + i], fork);  // >> floors
+      const scalar_t frac = scalar_t(key[1 + i] - base[i] * fork) / scalar_t(fork);
+      axis[i][0] = scalar_t(1) - frac;
+      axis[i][1] = frac;
+    }
+    for (int corner = 0; corner < 8; ++corner) {
+      weight[corner] = axis[0][(corner >> 2) & 1] * axis[1][(corner >> 1) & 1] * axis[2][corner & 1];
+    }
+  }
+};
+
 std::vector<at::Tensor> trilinear_parents(const at::Tensor& keys, int64_t fork, const at::Tensor& weight_like) {
   check_keys(keys, "keys");
   TORCH_CHECK(fork >= 2, "context_cpu: fork must be >= 2");
   const int64_t num = keys.size(0);
   const int64_t* k = keys.data_ptr<int64_t>();
-  std::vector<int64_t> anchor, parent;
-  anchor.reserve(size_t(2 * num));
-  parent.reserve(size_t(8 * num));
-  at::Tensor weight;
-  AT_DISPATCH_FLOATING_TYPES(weight_like.scalar_type(), "trilinear_parents", [&] {
-    std::vector<scalar_t> weights;
-    weights.reserve(size_t(2 * num));
-    for (int64_t a = 0; a < num; ++a) {
-      if (k[4 * a] <= 0) continue;
-      int64_t base[3];
-      scalar_t axis[3][2];
-      for (int i = 0; i < 3; ++i) {
-        base[i] = floor_div(k[4 * a + 1 + i], fork);
-        const scalar_t frac = scalar_t(k[4 * a + 1 + i] - base[i] * fork) / scalar_t(fork);
-        axis[i][0] = scalar_t(1) - frac;
-        axis[i][1] = frac;
-      }
-      for (int corner = 0; corner < 8; ++corner) {
-        const int cx = (corner >> 2) & 1, cy = (corner >> 1) & 1, cz = corner & 1;
-        const scalar_t w = axis[0][cx] * axis[1][cy] * axis[2][cz];
-        if (!(w > 0)) continue;
-        anchor.push_back(a);
-        parent.insert(parent.end(), {k[4 * a] - 1, base[0] + cx, base[1] + cy, base[2] + cz});
-        weights.push_back(w);
-      }
-    }
-    weight = at::empty({int64_t(weights.size())}, weight_like.options());
-    std::copy(weights.begin(), weights.end(), weight.data_ptr<scalar_t>());
-  });
   auto long_opts = at::TensorOptions().dtype(at::kLong);
-  auto anchor_t = at::empty({int64_t(anchor.size())}, long_opts);
-  auto parent_t = at::empty({int64_t(anchor.size()), 4}, long_opts);
-  std::copy(anchor.begin(), anchor.end(), anchor_t.data_ptr<int64_t>());
-  std::copy(parent.begin(), parent.end(), parent_t.data_ptr<int64_t>());
+  at::Tensor anchor_t, parent_t, weight;
+  int shift = -1;
+  for (int b = 1; b < 62; ++b) {
+    if (fork == (int64_t(1) << b)) shift = b;
+  }
+  AT_DISPATCH_FLOATING_TYPES(weight_like.scalar_type(), "trilinear_parents", [&] {
+    std::vector<int64_t> start(size_t(num) + 1, 0);
+    at::parallel_for(0, num, 2048, [&](int64_t begin, int64_t end) {
+      for (int64_t a = begin; a < end; ++a) {
+        if (k[4 * a] <= 0) continue;
+        const Corners<scalar_t> c(k + 4 * a, fork, shift);
+        start[size_t(a) + 1] = std::count_if(c.weight, c.weight + 8, [](scalar_t w) { return w > 0; });
+      }
+    });
+    for (int64_t a = 0; a < num; ++a) start[size_t(a) + 1] += start[size_t(a)];
+    const int64_t edges = start[size_t(num)];
+    anchor_t = at::empty({edges}, long_opts);
+    parent_t = at::empty({edges, 4}, long_opts);
+    weight = at::empty({edges}, weight_like.options());
+    int64_t* an = anchor_t.data_ptr<int64_t>();
+    int64_t* pa = parent_t.data_ptr<int64_t>();
+    scalar_t* we = weight.data_ptr<scalar_t>();
+    at::parallel_for(0, num, 2048, [&](int64_t begin, int64_t end) {
+      for (int64_t a = begin; a < end; ++a) {
+        if (k[4 * a] <= 0) continue;
+        const Corners<scalar_t> c(k + 4 * a, fork, shift);
+        int64_t e = start[size_t(a)];
+        for (int corner = 0; corner < 8; ++corner) {
+          if (!(c.weight[corner] > 0)) continue;
+          an[e] = a;
+          int64_t* p = pa + 4 * e;
+          p[0] = k[4 * a] - 1;
+          p[1] = c.base[0] + ((corner >> 2) & 1);
+          p[2] = c.base[1] + ((corner >> 1) & 1);
+          p[3] = c.base[2] + (corner & 1);
+          we[e] = c.weight[corner];
+          ++e;
+        }
+      }
+    });
+  });
   return {anchor_t, parent_t, weight};
 }
 
@@ -154,19 +224,32 @@ std::vector<at::Tensor> build_graph(const at::Tensor& keys, const at::Tensor& ed
     TORCH_CHECK(ea[e] >= 0 && ea[e] < num && (e == 0 || ea[e] >= ea[e - 1]),
                 "context_cpu: edge_anchor must be ascending anchor indices");
   }
-  CellTable table(num);
   auto long_opts = at::TensorOptions().dtype(at::kLong);
   auto cell = at::empty({num}, long_opts);
   int64_t* c = cell.data_ptr<int64_t>();
-  for (int64_t a = 0; a < num; ++a) c[a] = table.find(key_at(k, a), true);
-  const int64_t num_cells = table.size();
+  std::vector<int64_t> found(static_cast<size_t>(num_edges));
+  int64_t num_cells = 0;
+  // Cells numbered by first appearance among the anchors; then each edge's parent cell, or -1.
+  auto number_cells = [&](auto& table) {
+    for (int64_t a = 0; a < num; ++a) c[a] = table.find(k + 4 * a, true);
+    num_cells = table.size();
+    at::parallel_for(0, num_edges, 4096, [&](int64_t begin, int64_t end) {
+      for (int64_t e = begin; e < end; ++e) found[size_t(e)] = table.find(ek + 4 * e, false);
+    });
+  };
+  uint64_t unused;
+  bool packs = true;
+  for (int64_t a = 0; a < num && packs; ++a) packs = pack_key(k + 4 * a, unused);
+  if (packs) {
+    CellTable table(num);
+    number_cells(table);
+  } else {
+    WideCellTable table(num);
+    number_cells(table);
+  }
   auto count = at::zeros({num_cells}, long_opts);
   int64_t* n = count.data_ptr<int64_t>();
   for (int64_t a = 0; a < num; ++a) ++n[c[a]];
-  std::vector<int64_t> found(static_cast<size_t>(num_edges));
-  at::parallel_for(0, num_edges, 4096, [&](int64_t begin, int64_t end) {
-    for (int64_t e = begin; e < end; ++e) found[size_t(e)] = table.find(key_at(ek, e), false);
-  });
   std::vector<int64_t> kept;
   kept.reserve(size_t(num_edges));
   for (int64_t e = 0; e < num_edges; ++e) {
@@ -240,9 +323,14 @@ void check_graph(const std::vector<at::Tensor>& g, const at::Tensor& x) {
               "context_cpu: features must be a contiguous CPU tensor with one row per anchor");
 }
 
+// out += s in over d values; d = 32 (the features' width) is unrolled at compile time.
 template <typename scalar_t>
-void axpy(scalar_t* out, const scalar_t* in, scalar_t s, int64_t d) {
-  for (int64_t j = 0; j < d; ++j) out[j] += s * in[j];
+inline void axpy(scalar_t* out, const scalar_t* in, scalar_t s, int64_t d) {
+  if (d == 32) {
+    for (int64_t j = 0; j < 32; ++j) out[j] += s * in[j];
+  } else {
+    for (int64_t j = 0; j < d; ++j) out[j] += s * in[j];
+  }
 }
 
 // fallback: 0 = the missing row (missing [2,d]: parent, child) where a context is absent (trilinear
