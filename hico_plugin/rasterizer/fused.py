@@ -38,19 +38,21 @@ class _FusedComposite(torch.autograd.Function):
         ext = EXTENSION.get()
         grid = (bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size)
         inputs = [t.contiguous() for t in (means2d, conics, opacities, features)]
-        out, acc, final_t, n_drawn = ext.forward(*inputs, bins.gaussian_ids, bins.tile_offsets,
-                                                 *grid, ALPHA_MIN, ALPHA_MAX, T_MIN, *image_size)
-        ctx.save_for_backward(*inputs, final_t, n_drawn)
+        out, acc, final_t, n_drawn, records = ext.forward(*inputs, bins.gaussian_ids, bins.tile_offsets,
+                                                          *grid, ALPHA_MIN, ALPHA_MAX, T_MIN, *image_size)
+        # records: each Gaussian's footprint (cut-off, box half-sizes) and inputs packed in one row, which
+        # the backward reads instead of recomputing
+        ctx.save_for_backward(*inputs, final_t, n_drawn, records)
         ctx.bins, ctx.grid, ctx.image_size = bins, grid, image_size
         return out, acc
 
     @staticmethod
     def backward(ctx, grad_out, grad_acc):
-        means2d, conics, opacities, features, final_t, n_drawn = ctx.saved_tensors
+        means2d, conics, opacities, features, final_t, n_drawn, records = ctx.saved_tensors
         bins = ctx.bins
         grads = EXTENSION.get().backward(
             means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_offsets, *ctx.grid,
-            ALPHA_MIN, ALPHA_MAX, final_t, n_drawn, grad_out.contiguous(), grad_acc.contiguous(),
+            ALPHA_MIN, ALPHA_MAX, final_t, n_drawn, records, grad_out.contiguous(), grad_acc.contiguous(),
             *ctx.image_size)
         return (*grads, None, None)
 

@@ -47,24 +47,60 @@ struct Span {
   int64_t x0, x1, y0, y1;  // local pixel columns [x0, x1) and rows [y0, y1) of a tile
 };
 
+// Everything a tile reads of a Gaussian, in one record per Gaussian, written once per forward and kept
+// for the backward: [G, kRecord + D] = cut = log(opacity / alpha_min) (a hair above the exact cut, so
+// rounding never rejects a pair the alpha test would keep; -1 where the opacity is not positive), the
+// half-sizes hx, hy of the bounding box of its ellipse sigma <= cut (sqrt(2 cut C^-1_xx),
+// sqrt(2 cut C^-1_yy) for the conic C; -1 where the conic is not positive definite or anything is not
+// finite: every pixel of the tile is tested), q = exp(-c) (FalloffSteps), the mean, conic, opacity and
+// features. A tile gathers its rows from one place in memory instead of four arrays, and the backward
+// reads the log, square roots and exp instead of recomputing them for every (tile, row).
+constexpr int64_t kRecord = 10;  // then the D features
+
+template <typename scalar_t>
+at::Tensor splat_records(const Splats<scalar_t>& s, int64_t num_gaussians, scalar_t alpha_min,
+                         const at::TensorOptions& options) {
+  const int64_t width = kRecord + s.dim;
+  auto records = at::empty({num_gaussians, width}, options);
+  scalar_t* out = records.data_ptr<scalar_t>();
+  at::parallel_for(0, num_gaussians, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) {
+      const scalar_t op = s.opacities[g];
+      const scalar_t a = s.conics[3 * g], b = s.conics[3 * g + 1], c = s.conics[3 * g + 2];
+      const scalar_t cut = op > 0 ? std::log(op / alpha_min) + scalar_t(1e-3) : scalar_t(-1);
+      const scalar_t det = a * c - b * b;
+      const scalar_t hx = std::sqrt(2 * cut * c / det), hy = std::sqrt(2 * cut * a / det);
+      const bool bounded = det > 0 && a > 0 && std::isfinite(hx) && std::isfinite(hy) &&
+                           std::isfinite(s.means2d[2 * g]) && std::isfinite(s.means2d[2 * g + 1]);
+      scalar_t* o = out + g * width;
+      o[0] = cut;
+      o[1] = bounded ? hx : scalar_t(-1);
+      o[2] = bounded ? hy : scalar_t(-1);
+      o[3] = scalar_t(std::exp(-double(c)));
+      o[4] = s.means2d[2 * g]; o[5] = s.means2d[2 * g + 1]; o[6] = a; o[7] = b; o[8] = c; o[9] = op;
+      for (int64_t d = 0; d < s.dim; ++d) o[kRecord + d] = s.features[g * s.dim + d];
+    }
+  });
+  return records;
+}
+
 template <typename scalar_t>
 struct TileRows {
   // The first rows of one tile gathered into contiguous arrays: x, y, a, b, c, opacity, features, and
-  // cut = log(opacity / alpha_min): a pair with sigma > cut has alpha < alpha_min, so most pairs of
-  // a tile (pixels outside the row's ellipse) are rejected without an exp.
-  std::vector<scalar_t> mx, my, ca, cb, cc, op, cut, feat;
+  // from splat_records: cut (a pair with sigma > cut has alpha < alpha_min, so most pairs of a tile --
+  // pixels outside the row's ellipse -- are rejected without an exp), hx, hy and q.
+  std::vector<scalar_t> mx, my, ca, cb, cc, op, cut, hx, hy, q, feat;
 
-  TileRows(const Splats<scalar_t>& s, int64_t tile, int64_t count, scalar_t alpha_min)
-      : mx(count), my(count), ca(count), cb(count), cc(count), op(count), cut(count),
-        feat(count * s.dim) {
+  TileRows(const Splats<scalar_t>& s, const scalar_t* records, int64_t tile, int64_t count)
+      : mx(count), my(count), ca(count), cb(count), cc(count), op(count), cut(count), hx(count),
+        hy(count), q(count), feat(count * s.dim) {
     for (int64_t r = 0; r < count; ++r) {
       const int64_t g = s.ids[s.offsets[tile] + r];
-      mx[r] = s.means2d[2 * g]; my[r] = s.means2d[2 * g + 1];
-      ca[r] = s.conics[3 * g]; cb[r] = s.conics[3 * g + 1]; cc[r] = s.conics[3 * g + 2];
-      op[r] = s.opacities[g];
-      // a hair above the exact cut, so rounding never rejects a pair the alpha test would keep
-      cut[r] = op[r] > 0 ? std::log(op[r] / alpha_min) + scalar_t(1e-3) : scalar_t(-1);
-      for (int64_t d = 0; d < s.dim; ++d) feat[r * s.dim + d] = s.features[g * s.dim + d];
+      const scalar_t* record = records + g * (kRecord + s.dim);
+      cut[r] = record[0]; hx[r] = record[1]; hy[r] = record[2]; q[r] = record[3];
+      mx[r] = record[4]; my[r] = record[5];
+      ca[r] = record[6]; cb[r] = record[7]; cc[r] = record[8]; op[r] = record[9];
+      for (int64_t d = 0; d < s.dim; ++d) feat[r * s.dim + d] = record[kRecord + d];
     }
   }
 
@@ -77,17 +113,12 @@ struct TileRows {
   }
 
   // The local pixels [x0, x1) x [y0, y1) of a tile that row r can reach: the bounding box of its
-  // ellipse sigma <= cut (half-sizes sqrt(2 cut C^-1_xx), sqrt(2 cut C^-1_yy) for the conic C),
-  // widened by a pixel so rounding never drops a pixel the exact test above keeps. A conic that is
-  // not positive definite or not finite gets the whole tile (the test above decides every pixel).
+  // ellipse (splat_records), widened by a pixel so rounding never drops a pixel the exact test above
+  // keeps; the whole tile where the box is unbounded (the test above decides every pixel).
   // (ox, oy): the tile's first pixel column and row in the image.
   Span span(int64_t r, int64_t ox, int64_t oy, int64_t tile_size) const {
     if (!(cut[r] >= 0)) return Span{0, 0, 0, 0};  // sigma >= 0 > cut: reaches no pixel
-    const scalar_t det = ca[r] * cc[r] - cb[r] * cb[r];
-    const scalar_t hx = std::sqrt(2 * cut[r] * cc[r] / det), hy = std::sqrt(2 * cut[r] * ca[r] / det);
-    const bool bounded = det > 0 && ca[r] > 0 && std::isfinite(hx) && std::isfinite(hy) &&
-                         std::isfinite(mx[r]) && std::isfinite(my[r]);
-    if (!bounded) return Span{0, tile_size, 0, tile_size};
+    if (hx[r] < 0) return Span{0, tile_size, 0, tile_size};
     // Pixel i of the tile has its centre at o + i + 0.5: |o + i + 0.5 - m| <= h.
     auto range = [tile_size](scalar_t m, scalar_t h, int64_t o, int64_t& lo, int64_t& hi) {
       const scalar_t first = std::ceil(m - h - scalar_t(0.5) - scalar_t(o)) - 1;
@@ -97,8 +128,8 @@ struct TileRows {
       hi = int64_t(std::min(std::max(last + 1, scalar_t(0)), size));
     };
     Span out;
-    range(mx[r], hx, ox, out.x0, out.x1);
-    range(my[r], hy, oy, out.y0, out.y1);
+    range(mx[r], hx[r], ox, out.x0, out.x1);
+    range(my[r], hy[r], oy, out.y0, out.y1);
     return out;
   }
 };
@@ -169,8 +200,8 @@ void for_each_tile(int64_t num_tiles, Fn fn) {
 // in the same order with the same arithmetic as a pixel-by-pixel loop, and each row's gradient sums
 // its pixels in raster order, so the results do not depend on the loop order.
 template <typename scalar_t>
-void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, scalar_t a_max,
-                  scalar_t t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t,
+void forward_impl(const Splats<scalar_t>& s, const scalar_t* records, const Grid grid, scalar_t a_min,
+                  scalar_t a_max, scalar_t t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t,
                   at::Tensor& n_drawn) {
   const int64_t ts = grid.tile_size, pixels = ts * ts, dim = s.dim;
   scalar_t* out_p = out.data_ptr<scalar_t>();
@@ -180,7 +211,7 @@ void forward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, sc
 
   for_each_tile(s.num_tiles, [&](int64_t t) {
     const int64_t count = s.offsets[t + 1] - s.offsets[t];
-    const TileRows<scalar_t> rows(s, t, count, a_min);
+    const TileRows<scalar_t> rows(s, records, t, count);
     scalar_t* color = out_p + t * pixels * dim;
     scalar_t* weight_sum = acc_p + t * pixels;
     scalar_t* trans = t_p + t * pixels;
@@ -246,9 +277,9 @@ void add_row_grads(const Splats<scalar_t>& s, const std::vector<int32_t>& deepes
 }
 
 template <typename scalar_t>
-void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, scalar_t a_max,
-                   const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
-                   const at::Tensor& grad_acc, at::Tensor& grads) {
+void backward_impl(const Splats<scalar_t>& s, const scalar_t* records, const Grid grid, scalar_t a_min,
+                   scalar_t a_max, const at::Tensor& final_t, const at::Tensor& n_drawn,
+                   const at::Tensor& grad_out, const at::Tensor& grad_acc, at::Tensor& grads) {
   // grads [G, 6 + D]: d means2d (2), d conics (3), d opacity (1), d features (D). Each tile writes
   // its rows' gradients (summed over its pixels) into its own slice of a per-intersection buffer;
   // one serial pass then adds them up by Gaussian in intersection order, so the result does not
@@ -267,7 +298,7 @@ void backward_impl(const Splats<scalar_t>& s, const Grid grid, scalar_t a_min, s
     const int32_t deepest = *std::max_element(drawn, drawn + pixels);
     deepest_of[t] = deepest;
     if (deepest == 0) return;
-    const TileRows<scalar_t> rows(s, t, deepest, a_min);
+    const TileRows<scalar_t> rows(s, records, t, deepest);
     scalar_t* g_rows = &row_grads[s.offsets[t] * stride];  // this tile's rows, summed over its pixels
     // Per pixel: the transmittance in front of the current row (recovered back to front by division)
     // and the colour (and alpha) composited behind it.
@@ -420,7 +451,7 @@ struct FalloffSteps {
       }
     }
     on = top < 60.f;  // (NaN fails)
-    q = splat(float(std::exp(-double(c))));
+    q = splat(rows.q[r]);
   }
 
   // exp(-sigma) at column col of the current scanline (dx, dy: its lanes' offsets from the centre; the
@@ -438,8 +469,8 @@ struct FalloffSteps {
 };
 
 template <int kDim>
-void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, float a_min, float a_max,
-                  float t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t, at::Tensor& n_drawn) {
+void forward_simd(const Splats<float>& s, const float* records, const Grid grid, const Layout layout,
+                  float a_min, float a_max, float t_min, at::Tensor& out, at::Tensor& acc, at::Tensor& final_t, at::Tensor& n_drawn) {
   const int64_t ts = grid.tile_size, pixels = ts * ts, dim = kDim > 0 ? kDim : s.dim;
   const int64_t padded = pixels + kLanes;
   float* out_p = out.data_ptr<float>();
@@ -451,7 +482,7 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
 
   for_each_tile(s.num_tiles, [&](int64_t t) {
     const int64_t count_rows = s.offsets[t + 1] - s.offsets[t];
-    const TileRows<float> rows(s, t, count_rows, a_min);
+    const TileRows<float> rows(s, records, t, count_rows);
     std::vector<float> trans(padded, 1.f), weight(padded, 0.f), color(dim * padded, 0.f);
     std::vector<int32_t> drawn(padded, 0), stopped(padded, 0);
     std::vector<fvec> fr(dim);
@@ -513,8 +544,8 @@ void forward_simd(const Splats<float>& s, const Grid grid, const Layout layout, 
 }
 
 template <int kDim>
-void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout, float a_min, float a_max,
-                   const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
+void backward_simd(const Splats<float>& s, const float* records, const Grid grid, const Layout layout,
+                   float a_min, float a_max, const at::Tensor& final_t, const at::Tensor& n_drawn, const at::Tensor& grad_out,
                    const at::Tensor& grad_acc, at::Tensor& grads) {
   // As backward_impl; each row's gradient sums its pixels lane by lane, then the lanes (a fixed
   // order, so the result is still independent of threads and schedule). Every row above a tile's
@@ -539,7 +570,7 @@ void backward_simd(const Splats<float>& s, const Grid grid, const Layout layout,
     const int32_t deepest = *std::max_element(drawn_t, drawn_t + pixels);
     deepest_of[t] = deepest;
     if (deepest == 0) return;
-    const TileRows<float> rows(s, t, deepest, a_min);
+    const TileRows<float> rows(s, records, t, deepest);
     float* g_rows = row_grads.get() + s.offsets[t] * stride;
     std::vector<float> trans(padded, 1.f), g_alpha(padded, 0.f), g_color(dim * padded, 0.f);
     std::vector<float> behind((dim + 1) * padded, 0.f);
@@ -665,9 +696,11 @@ std::vector<at::Tensor> forward(const at::Tensor& means2d, const at::Tensor& con
   const Layout layout{width, height};
   auto final_t = at::empty({num_tiles, pixels}, features.options());
   auto n_drawn = at::empty({num_tiles, pixels}, features.options().dtype(at::kInt));
-  at::Tensor out, acc;
+  at::Tensor out, acc, records;
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_forward", [&] {
     const Splats<scalar_t> splats(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
+    records = splat_records<scalar_t>(splats, features.size(0), scalar_t(alpha_min), features.options());
+    const scalar_t* records_p = records.data_ptr<scalar_t>();
     if constexpr (std::is_same_v<scalar_t, float>) {
       const int64_t cams = num_tiles / tiles_per_cam;
       out = width ? at::empty({cams, height, width, dim}, features.options())
@@ -675,18 +708,18 @@ std::vector<at::Tensor> forward(const at::Tensor& means2d, const at::Tensor& con
       acc = width ? at::empty({cams, height, width}, features.options())
                   : at::empty({num_tiles, pixels}, features.options());
       with_channels(dim, [&](auto channels) {
-        forward_simd<decltype(channels)::value>(splats, grid, layout, alpha_min, alpha_max, t_min, out, acc,
-                                                final_t, n_drawn);
+        forward_simd<decltype(channels)::value>(splats, records_p, grid, layout, alpha_min, alpha_max, t_min,
+                                                out, acc, final_t, n_drawn);
       });
     } else {
       out = at::empty({num_tiles, pixels, dim}, features.options());
       acc = at::empty({num_tiles, pixels}, features.options());
-      forward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, t_min, out, acc, final_t, n_drawn);
+      forward_impl<scalar_t>(splats, records_p, grid, alpha_min, alpha_max, t_min, out, acc, final_t, n_drawn);
       out = layout.from_tiles(out, grid);
       acc = layout.from_tiles(acc.unsqueeze(-1), grid).squeeze(-1);
     }
   });
-  return {out, acc, final_t, n_drawn};
+  return {out, acc, final_t, n_drawn, records};
 }
 
 std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& conics,
@@ -694,23 +727,28 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
                                  const at::Tensor& gaussian_ids, const at::Tensor& tile_offsets,
                                  int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,
                                  double alpha_min, double alpha_max, const at::Tensor& final_t,
-                                 const at::Tensor& n_drawn, const at::Tensor& grad_out,
-                                 const at::Tensor& grad_acc, int64_t width, int64_t height) {
+                                 const at::Tensor& n_drawn, const at::Tensor& records,
+                                 const at::Tensor& grad_out, const at::Tensor& grad_acc, int64_t width,
+                                 int64_t height) {
   check_inputs(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
   TORCH_CHECK(grad_out.is_contiguous() && grad_acc.is_contiguous(), "composite_cpu: grads must be contiguous");
+  TORCH_CHECK(records.is_contiguous() && records.scalar_type() == features.scalar_type() &&
+                  records.size(0) == features.size(0) && records.size(1) == kRecord + features.size(1),
+              "composite_cpu: records must be the forward's [G, 10 + D]");
   auto grads = at::zeros({features.size(0), 6 + features.size(1)}, features.options());
   const Grid grid{tiles_x, tiles_per_cam, tile_size};
   const Layout layout{width, height};
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_backward", [&] {
     const Splats<scalar_t> splats(means2d, conics, opacities, features, gaussian_ids, tile_offsets);
+    const scalar_t* records_p = records.data_ptr<scalar_t>();
     if constexpr (std::is_same_v<scalar_t, float>) {
       with_channels(features.size(1), [&](auto channels) {
-        backward_simd<decltype(channels)::value>(splats, grid, layout, alpha_min, alpha_max, final_t, n_drawn,
-                                                 grad_out, grad_acc, grads);
+        backward_simd<decltype(channels)::value>(splats, records_p, grid, layout, alpha_min, alpha_max,
+                                                 final_t, n_drawn, grad_out, grad_acc, grads);
       });
     } else {
       const int64_t num_tiles = tile_offsets.size(0) - 1;
-      backward_impl<scalar_t>(splats, grid, alpha_min, alpha_max, final_t, n_drawn,
+      backward_impl<scalar_t>(splats, records_p, grid, alpha_min, alpha_max, final_t, n_drawn,
                               layout.to_tiles(grad_out, grid, num_tiles),
                               layout.to_tiles(grad_acc.unsqueeze(-1), grid, num_tiles).squeeze(-1), grads);
     }
