@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from hico_plugin.config import InstantiateConfig
-from hico_plugin.field.gather import take_rows
+from hico_plugin.field.gather import repeat_rows, take_rows
 
 
 @dataclass
@@ -147,14 +147,14 @@ class GaussianDecoder(nn.Module):
             code = self.appearance_code(camera_index, inputs)
             color_in = torch.cat([inputs, code.expand(inputs.shape[0], -1)], dim=1)
         # Only the kept children are needed downstream: evaluate the MLPs per anchor, then gather the
-        # kept rows (each once: take_rows) and each kept child's anchor (index_select, whose backward
-        # adds the children's gradients).
+        # kept rows (each once: take_rows) and each kept child's anchor (repeat_rows: anchor_rows
+        # ascends, so the backward sums each anchor's children in parallel).
         colors = take_rows(torch.sigmoid(self.mlp_color(color_in)).view(-1, 3), child_rows)
         cov = take_rows(self.mlp_cov(inputs).view(-1, 7), child_rows)
-        anchor_scale = scalings.index_select(0, anchor_rows)
+        anchor_scale = repeat_rows(scalings, anchor_rows)
         scales = anchor_scale[:, 3:6] * torch.sigmoid(cov[:, :3])
         quats = F.normalize(cov[:, 3:7], dim=-1)
-        means = (positions.index_select(0, anchor_rows)
+        means = (repeat_rows(positions, anchor_rows)
                  + take_rows(offsets.reshape(-1, 3), child_rows) * anchor_scale[:, :3])
         return NeuralGaussians(
             means=means, quats=quats, scales=scales, opacities=take_rows(opacity.view(-1), child_rows),

@@ -1,8 +1,11 @@
-"""field.gather.take_rows: index_select's values and gradient for rows that never repeat."""
+"""field.gather: take_rows (rows that never repeat) and repeat_rows (ascending rows that repeat) against
+index_select's values and gradients."""
 
+import pytest
 import torch
 
-from hico_plugin.field.gather import take_rows
+from hico_plugin.field import gather
+from hico_plugin.field.gather import repeat_rows, take_rows
 
 
 def _rows(count: int, seed: int) -> torch.Tensor:
@@ -49,3 +52,66 @@ def test_nonfinite_gradients_reach_only_their_rows():
     out.backward(torch.tensor([[float("inf")], [float("nan")]]))
     assert source.grad[2, 0] == float("inf") and source.grad[1, 0].isnan()
     assert torch.equal(source.grad[[0, 3]], torch.zeros(2, 1))
+
+
+def _children(count: int, k: int, seed: int) -> torch.Tensor:
+    """The anchor of every kept child, as the decoder forms it: ascending, each anchor 0..k times."""
+    keep = torch.rand(count, k, generator=torch.Generator().manual_seed(seed)) < 0.6
+    return keep.nonzero(as_tuple=True)[0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(6,), (3,), ()])
+def test_repeat_rows_equals_index_select_bit_for_bit(dtype, shape):
+    source = torch.randn(300, *shape, dtype=dtype, requires_grad=True)
+    rows = _children(300, 5, 3)
+    assert rows.diff().eq(0).any() and rows.diff().ge(0).all()  # repeats, ascending
+    weights = torch.randn(rows.numel(), *shape, dtype=dtype)
+    out = repeat_rows(source, rows)
+    (out * weights).sum().backward()
+    got = source.grad.clone()
+    source.grad = None
+    (source.index_select(0, rows) * weights).sum().backward()
+    assert torch.equal(out, source.index_select(0, rows))
+    assert torch.equal(got, source.grad)
+
+
+def test_repeat_rows_gradcheck_float64():
+    source = torch.randn(10, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s: repeat_rows(s, _children(10, 4, 4)), (source,))
+
+
+def test_repeat_rows_out_of_order_falls_back_to_index_add():
+    """Rows that do not ascend (or lie outside the source) are not the kernel's case: index_add_ sums them."""
+    source = torch.randn(5, 2, requires_grad=True)
+    rows = torch.tensor([3, 1, 3, 0])
+    repeat_rows(source, rows).backward(torch.ones(4, 2))
+    assert torch.equal(source.grad, torch.tensor([[1.0, 1.0], [1.0, 1.0], [0.0, 0.0], [2.0, 2.0], [0.0, 0.0]]))
+
+
+def test_repeat_rows_hard_cases():
+    """No rows; every row on one anchor; non-finite gradients stay on their anchor; any thread count."""
+    source = torch.randn(4, 3, requires_grad=True)
+    repeat_rows(source, torch.zeros(0, dtype=torch.long)).sum().backward()
+    assert torch.equal(source.grad, torch.zeros(4, 3))
+    source.grad = None
+    repeat_rows(source, torch.full((7,), 2)).backward(torch.ones(7, 3))
+    assert torch.equal(source.grad[2], torch.full((3,), 7.0)) and source.grad[[0, 1, 3]].eq(0).all()
+    source.grad = None
+    grad = torch.zeros(3, 3)
+    grad[1, 0] = float("inf")
+    repeat_rows(source, torch.tensor([0, 1, 1])).backward(grad)
+    assert source.grad[1, 0] == float("inf") and source.grad[[0, 2, 3]].eq(0).all()
+    grad = torch.randn(5000, 3)
+    rows = _children(1000, 5, 5)[:5000]
+    before = torch.get_num_threads()
+    try:
+        sums = []
+        for threads in (1, 2, 3):
+            torch.set_num_threads(threads)
+            sums.append(gather._row_sums(grad[: rows.numel()], rows, 1000))
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(sums[0], sums[1]) and torch.equal(sums[0], sums[2])
+    assert torch.equal(sums[0], torch.zeros(1000, 3).index_add_(0, rows, grad[: rows.numel()]))
+

@@ -1,0 +1,55 @@
+// Sums of gradient rows by an ascending row index, the backward of a gather whose rows repeat in runs (a
+// decoded child's anchor: each anchor's K children are consecutive):
+//
+//   grad [M, C], rows [M] int64 ascending in [0, N) -> out [N, C], out[r] = the sum of grad[i] over the i
+//   with rows[i] == r, added in order of i starting from zero -- the sum zeros.index_add_(0, rows, grad)
+//   forms, which torch runs single-threaded on a CPU (it cannot know that no two threads would write a row).
+//
+// The output rows are split among the threads; each writes its own rows, zero where no index names them,
+// so results are bitwise those of index_add_ whatever the thread count. Returns 0, or 1 when rows is not
+// ascending within [0, N) (nothing written; the caller uses index_add_).
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cstdint>
+
+namespace {
+
+template <typename T>
+int segment_sum(const T* grad, const int64_t* rows, int64_t m, int64_t cols, int64_t n, T* out, int threads) {
+  for (int64_t i = 0; i < m; ++i) {
+    if (rows[i] < 0 || rows[i] >= n || (i > 0 && rows[i] < rows[i - 1])) return 1;
+  }
+#pragma omp parallel num_threads(threads)
+  {
+    const int64_t parts = omp_get_num_threads(), part = omp_get_thread_num();
+    const int64_t first = n * part / parts, last = n * (part + 1) / parts;
+    int64_t i = std::lower_bound(rows, rows + m, first) - rows;
+    for (int64_t r = first; r < last; ++r) {
+      T* o = out + r * cols;
+      std::fill(o, o + cols, T(0));
+      for (; i < m && rows[i] == r; ++i) {
+        const T* g = grad + i * cols;
+        for (int64_t c = 0; c < cols; ++c) o[c] += g[c];
+      }
+    }
+  }
+  return 0;
+}
+
+}  // namespace
+
+extern "C" {
+
+int hico_segment_sum_f32(const float* grad, const int64_t* rows, int64_t m, int64_t cols, int64_t n, float* out,
+                         int threads) {
+  return segment_sum(grad, rows, m, cols, n, out, threads);
+}
+
+int hico_segment_sum_f64(const double* grad, const int64_t* rows, int64_t m, int64_t cols, int64_t n, double* out,
+                         int threads) {
+  return segment_sum(grad, rows, m, cols, n, out, threads);
+}
+
+}  // extern "C"
