@@ -207,6 +207,25 @@ def test_fused_binning_keeps_torch_order_on_depth_ties(dtype):
         assert torch.equal(getattr(got, name), getattr(want, name)), name
 
 
+def test_fused_binning_is_independent_of_threads():
+    """The counting sort by tile splits the hits among the threads (and a Gaussian's tiles past the
+    four the counting pass keeps are found again): any thread count gives the torch binning's order."""
+    proj, _ = projected_scene(3000, seed=3, num_cams=2)
+    args = (proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths, proj.radii, 64, 48, 4)
+    want = bin_gaussians(*args)
+    assert want.gaussian_ids.numel() > 3 * 4096  # enough hits for three threads to share the sort
+    assert torch.bincount(want.gaussian_ids).max() > 4
+    threads = torch.get_num_threads()
+    try:
+        for count in (1, 2, 3):
+            torch.set_num_threads(count)
+            got = bin_gaussians_fused(*args)
+            for name in ("gaussian_ids", "tile_ids", "tile_offsets"):
+                assert torch.equal(getattr(got, name), getattr(want, name)), (count, name)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_fused_binning_of_nothing():
     proj, _ = projected_scene(0, seed=0, num_cams=2)
     bins = bin_gaussians_fused(proj.means2d, proj.conics, proj.reach, proj.extents, proj.depths,

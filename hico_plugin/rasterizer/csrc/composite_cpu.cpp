@@ -255,7 +255,9 @@ void forward_impl(const Splats<scalar_t>& s, const scalar_t* records, const Grid
 // The backward's last pass: each tile's per-intersection row gradients (rows below the tile's deepest
 // drawn row) added to their Gaussians' in intersection order, whichever thread computed them. Each
 // thread adds the Gaussians of its own id range (every thread reads the ids, each adds a share of the
-// rows), so every Gaussian's sum runs in the same order whatever the thread count.
+// rows), so every Gaussian's sum runs in the same order whatever the thread count. g_all needs no
+// zeroing beforehand: each thread zeroes its own range first (one pass in parallel instead of a serial
+// memset of the whole [G, 6 + D]).
 template <typename scalar_t>
 void add_row_grads(const Splats<scalar_t>& s, const std::vector<int32_t>& deepest_of,
                    const scalar_t* row_grads, int64_t stride, scalar_t* g_all, int64_t num_gaussians) {
@@ -263,6 +265,7 @@ void add_row_grads(const Splats<scalar_t>& s, const std::vector<int32_t>& deepes
   at::parallel_for(0, parts, 1, [&](int64_t p0, int64_t p1) {
     for (int64_t part = p0; part < p1; ++part) {
       const int64_t lo = num_gaussians * part / parts, hi = num_gaussians * (part + 1) / parts;
+      std::fill(g_all + lo * stride, g_all + hi * stride, scalar_t(0));
       for (int64_t t = 0; t < s.num_tiles; ++t) {
         for (int64_t i = s.offsets[t]; i < s.offsets[t] + deepest_of[t]; ++i) {
           const int64_t g = s.ids[i];
@@ -735,7 +738,8 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
   TORCH_CHECK(records.is_contiguous() && records.scalar_type() == features.scalar_type() &&
                   records.size(0) == features.size(0) && records.size(1) == kRecord + features.size(1),
               "composite_cpu: records must be the forward's [G, 10 + D]");
-  auto grads = at::zeros({features.size(0), 6 + features.size(1)}, features.options());
+  // add_row_grads zeroes it
+  auto grads = at::empty({features.size(0), 6 + features.size(1)}, features.options());
   const Grid grid{tiles_x, tiles_per_cam, tile_size};
   const Layout layout{width, height};
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_cpu_backward", [&] {
@@ -816,19 +820,22 @@ key_t<scalar_t> order_key(scalar_t x) {
   return (bits & sign) ? ~bits : (bits | sign);
 }
 
-// Stable LSD radix sort of ids by key, 8 bits a pass; a pass whose byte is the same everywhere is skipped.
+// Stable LSD radix sort of ids by key, 11 bits a pass (three passes for float32 keys; the histogram of
+// 2,048 buckets stays in L1); a pass whose digit is the same everywhere is skipped.
 template <typename K>
 void radix_sort(std::vector<K>& keys, std::vector<int64_t>& ids) {
+  constexpr size_t kBits = 11, kBuckets = size_t(1) << kBits;
   const size_t count = keys.size();
   std::vector<K> keys_tmp(count);
   std::vector<int64_t> ids_tmp(count);
-  for (size_t shift = 0; shift < 8 * sizeof(K); shift += 8) {
-    size_t hist[257] = {0};
-    for (size_t i = 0; i < count; ++i) ++hist[((keys[i] >> shift) & 0xff) + 1];
-    if (std::any_of(hist + 1, hist + 257, [&](size_t h) { return h == count; })) continue;
-    for (int b = 0; b < 256; ++b) hist[b + 1] += hist[b];
+  std::vector<size_t> hist(kBuckets + 1);
+  for (size_t shift = 0; shift < 8 * sizeof(K); shift += kBits) {
+    std::fill(hist.begin(), hist.end(), 0);
+    for (size_t i = 0; i < count; ++i) ++hist[((keys[i] >> shift) & (kBuckets - 1)) + 1];
+    if (std::any_of(hist.begin() + 1, hist.end(), [&](size_t h) { return h == count; })) continue;
+    for (size_t b = 0; b < kBuckets; ++b) hist[b + 1] += hist[b];
     for (size_t i = 0; i < count; ++i) {
-      const size_t at = hist[(keys[i] >> shift) & 0xff]++;
+      const size_t at = hist[(keys[i] >> shift) & (kBuckets - 1)]++;
       keys_tmp[at] = keys[i];
       ids_tmp[at] = ids[i];
     }
@@ -837,11 +844,15 @@ void radix_sort(std::vector<K>& keys, std::vector<int64_t>& ids) {
   }
 }
 
+// The tiles a Gaussian reaches, kept by the counting pass for the writing pass when there are at most
+// this many (almost every Gaussian: about two on average), so each ellipse is tested against its tiles once.
+constexpr int64_t kCachedTiles = 4;
+
 template <typename scalar_t>
 void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& reach,
               const at::Tensor& extents, const at::Tensor& radii, const at::Tensor& depths,
               int64_t n, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,
-              int64_t tiles_y, std::vector<int64_t>& hit_gaussians, std::vector<int64_t>& hit_tiles) {
+              int64_t tiles_y, at::Tensor& hit_gaussians, at::Tensor& hit_tiles) {
   const scalar_t* m = means2d.data_ptr<scalar_t>();
   const scalar_t* cn = conics.data_ptr<scalar_t>();
   const scalar_t* rc = reach.data_ptr<scalar_t>();
@@ -866,17 +877,24 @@ void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
       }
     }
   };
-  std::vector<int64_t> counts(total, 0);
+  std::vector<int64_t> counts(total);
+  std::unique_ptr<int64_t[]> cached(new int64_t[total * kCachedTiles]);
   at::parallel_for(0, total, 1024, [&](int64_t begin, int64_t end) {
     for (int64_t g = begin; g < end; ++g) {
       int64_t c = 0;
-      visit(g, [&](int64_t) { ++c; });
+      int64_t* mine = &cached[g * kCachedTiles];
+      visit(g, [&](int64_t tile) {
+        if (c < kCachedTiles) mine[c] = tile;
+        ++c;
+      });
       counts[g] = c;
     }
   });
   using K = key_t<scalar_t>;
   std::vector<K> keys;
   std::vector<int64_t> order;
+  keys.reserve(total);
+  order.reserve(total);
   for (int64_t g = 0; g < total; ++g) {
     if (counts[g] > 0) {
       keys.push_back(order_key(dp[g]));
@@ -884,19 +902,28 @@ void bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
     }
   }
   radix_sort(keys, order);
-  std::vector<int64_t> start(total, 0);  // first hit of each Gaussian, in depth order
+  std::vector<int64_t> start(total);  // first hit of each Gaussian, in depth order (read only where it hits)
   int64_t hits = 0;
   for (const int64_t g : order) {
     start[g] = hits;
     hits += counts[g];
   }
-  hit_gaussians.resize(hits);
-  hit_tiles.resize(hits);
+  hit_gaussians = at::empty({hits}, at::TensorOptions().dtype(at::kLong));
+  hit_tiles = at::empty({hits}, at::TensorOptions().dtype(at::kLong));
+  int64_t* hg = hit_gaussians.data_ptr<int64_t>();
+  int64_t* ht = hit_tiles.data_ptr<int64_t>();
   at::parallel_for(0, total, 1024, [&](int64_t begin, int64_t end) {
     for (int64_t g = begin; g < end; ++g) {
       if (counts[g] == 0) continue;
       int64_t at = start[g];
-      visit(g, [&](int64_t tile) { hit_tiles[at] = tile; hit_gaussians[at] = g; ++at; });
+      if (counts[g] <= kCachedTiles) {
+        for (int64_t c = 0; c < counts[g]; ++c, ++at) {
+          ht[at] = cached[g * kCachedTiles + c];
+          hg[at] = g;
+        }
+      } else {
+        visit(g, [&](int64_t tile) { ht[at] = tile; hg[at] = g; ++at; });
+      }
     }
   });
 }
@@ -915,28 +942,60 @@ std::vector<at::Tensor> bin(const at::Tensor& means2d, const at::Tensor& conics,
   const int64_t tiles_x = (width + tile_size - 1) / tile_size;
   const int64_t tiles_y = (height + tile_size - 1) / tile_size;
   const int64_t num_tiles = num_cams * tiles_x * tiles_y;
-  std::vector<int64_t> gaussians, tiles;
+  at::Tensor gaussians, tiles;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_cpu", [&] {
     bin_impl<scalar_t>(means2d, conics, reach, extents, radii, depths, n, width, height, tile_size,
                        tiles_x, tiles_y, gaussians, tiles);
   });
-  // Counting sort by tile, stable: depth order survives within each tile.
-  const int64_t hits = int64_t(tiles.size());
+  // Counting sort by tile, stable (depth order survives within each tile), in parallel: each thread
+  // counts and places one contiguous block of the hits, and within a tile block p's hits go after those
+  // of blocks before it, so the order is the serial sort's whatever the thread count.
+  const int64_t hits = tiles.numel();
+  const int64_t* ht = tiles.data_ptr<int64_t>();
+  const int64_t* hg = gaussians.data_ptr<int64_t>();
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), hits / 4096 + 1));
+  std::vector<int64_t> place(size_t(parts * num_tiles), 0);  // [part][tile]: counts, then write cursors
+  auto block = [&](int64_t part, int64_t& lo, int64_t& hi) {
+    lo = hits * part / parts;
+    hi = hits * (part + 1) / parts;
+  };
+  at::parallel_for(0, parts, 1, [&](int64_t p0, int64_t p1) {
+    for (int64_t part = p0; part < p1; ++part) {
+      int64_t lo, hi;
+      block(part, lo, hi);
+      int64_t* mine = &place[size_t(part * num_tiles)];
+      for (int64_t i = lo; i < hi; ++i) ++mine[ht[i]];
+    }
+  });
   auto long_opts = at::TensorOptions().dtype(at::kLong);
-  auto offsets = at::zeros({num_tiles + 1}, long_opts);
+  auto offsets = at::empty({num_tiles + 1}, long_opts);
+  int64_t* off = offsets.data_ptr<int64_t>();
+  int64_t running = 0;
+  for (int64_t t = 0; t < num_tiles; ++t) {
+    off[t] = running;
+    for (int64_t part = 0; part < parts; ++part) {
+      const int64_t count = place[size_t(part * num_tiles + t)];
+      place[size_t(part * num_tiles + t)] = running;
+      running += count;
+    }
+  }
+  off[num_tiles] = running;
   auto gaussian_ids = at::empty({hits}, long_opts);
   auto tile_ids = at::empty({hits}, long_opts);
-  int64_t* off = offsets.data_ptr<int64_t>();
-  for (int64_t i = 0; i < hits; ++i) ++off[tiles[i] + 1];
-  for (int64_t t = 0; t < num_tiles; ++t) off[t + 1] += off[t];
-  std::vector<int64_t> cursor(off, off + num_tiles);
   int64_t* gid = gaussian_ids.data_ptr<int64_t>();
   int64_t* tid = tile_ids.data_ptr<int64_t>();
-  for (int64_t i = 0; i < hits; ++i) {
-    const int64_t at = cursor[tiles[i]]++;
-    gid[at] = gaussians[i];
-    tid[at] = tiles[i];
-  }
+  at::parallel_for(0, parts, 1, [&](int64_t p0, int64_t p1) {
+    for (int64_t part = p0; part < p1; ++part) {
+      int64_t lo, hi;
+      block(part, lo, hi);
+      int64_t* cursor = &place[size_t(part * num_tiles)];
+      for (int64_t i = lo; i < hi; ++i) {
+        const int64_t at = cursor[ht[i]]++;
+        gid[at] = hg[i];
+        tid[at] = ht[i];
+      }
+    }
+  });
   return {gaussian_ids, tile_ids, offsets};
 }
 
