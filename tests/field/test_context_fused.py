@@ -135,3 +135,19 @@ def test_graph_at_the_packed_keys_edge(shift):
     got = view_graph(levels, positions, torch.arange(300), GRID, ParentRule.trilinear)
     for a, b in zip(canonical(got), canonical(keys)):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("fork", [3, 4])
+def test_graph_with_other_forks(fork):
+    """A fork that is not 2: another power of two (a shift) and one that is not (integer division)."""
+    grid = OctreeGrid(origin=(0.5, -1.0, 2.0), cube_size=16.0, voxel_size=2.0, num_levels=3, fork=fork,
+                      d_std=10.0, init_level=1)
+    gen = torch.Generator().manual_seed(fork)
+    levels = torch.randint(0, 3, (400,), generator=gen)
+    index = (torch.rand(400, 3, generator=gen) * 4 * fork ** levels[:, None].float()).long()
+    positions = grid.grid_position(index, levels, torch.float64)
+    want = ContextIndex(grid, "trilinear").view(levels, positions, torch.arange(400))
+    got = view_graph(levels, positions, torch.arange(400), grid, ParentRule.trilinear)
+    assert got.anchor.numel() > 100
+    for a, b in zip(canonical(got), canonical(want)):
+        assert torch.equal(a, b)

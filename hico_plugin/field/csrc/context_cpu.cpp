@@ -154,10 +154,7 @@ std::vector<at::Tensor> trilinear_parents(const at::Tensor& keys, int64_t fork, 
   const int64_t* k = keys.data_ptr<int64_t>();
   auto long_opts = at::TensorOptions().dtype(at::kLong);
   at::Tensor anchor_t, parent_t, weight;
-  int shift = -1;
-  for (int b = 1; b < 62; ++b) {
-    if (fork == (int64_t(1) << b)) shift = b;
-  }
+  const int shift = (fork & (fork - 1)) == 0 ? __builtin_ctzll(uint64_t(fork)) : -1;  // log2 of a power of two
   AT_DISPATCH_FLOATING_TYPES(weight_like.scalar_type(), "trilinear_parents", [&] {
     std::vector<int64_t> start(size_t(num) + 1, 0);
     at::parallel_for(0, num, 2048, [&](int64_t begin, int64_t end) {

@@ -5,7 +5,8 @@
 //   means2d [G,2], conics [G,3] (a, b, c of [[a,b],[b,c]]), opacities [G], features [G,D],
 //   gaussian_ids [I] int64 sorted by (tile, depth), tile_offsets [T+1] int64
 //   -> features [T,P,D], alpha [T,P] (or, given width and height, the images [C,H,W,D], [C,H,W]),
-//      final transmittance [T,P], rows drawn per pixel [T,P] int32
+//      final transmittance [T,P], rows drawn per pixel [T,P] int32, and the Gaussians' records
+//      [G, 10 + D] (splat_records), which the backward takes with the transmittance and draw counts
 //
 // A pair is skipped when sigma < 0 or alpha < alpha_min; alpha is clamped at alpha_max; a pixel stops
 // at the first pair whose transmittance after it would be <= t_min (that pair is not drawn).
