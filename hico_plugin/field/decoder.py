@@ -109,19 +109,17 @@ class GaussianDecoder(nn.Module):
         = exp of the log-scaling parameter); levels [V]; camera_center [3], or [V,3] one viewpoint
         per anchor; anchor_ids [V] long (the anchors' ids in the field, carried into the output).
         """
-        parts = []
         size = max(1, self.config.chunk_size)
+        if features.shape[0] <= size:  # the usual view: a slice would add a copy to every input's gradient
+            return self._decode(features, positions, offsets, scalings, levels, camera_center, camera_index,
+                                anchor_ids)
         per_anchor = camera_center.dim() == 2
+        parts = []
         for start in range(0, features.shape[0], size):  # chunks of anchors, not a per-anchor loop
             sl = slice(start, start + size)
             parts.append(self._decode(features[sl], positions[sl], offsets[sl], scalings[sl], levels[sl],
                                       camera_center[sl] if per_anchor else camera_center, camera_index,
                                       anchor_ids[sl]))
-        if not parts:
-            parts.append(self._decode(features, positions, offsets, scalings, levels, camera_center,
-                                      camera_index, anchor_ids))
-        if len(parts) == 1:  # the usual view: torch.cat would copy every output for nothing
-            return parts[0]
         names = NeuralGaussians.__dataclass_fields__
         return NeuralGaussians(**{name: torch.cat([getattr(p, name) for p in parts]) for name in names})
 
@@ -151,11 +149,14 @@ class GaussianDecoder(nn.Module):
         # ascends, so the backward sums each anchor's children in parallel).
         colors = take_rows(torch.sigmoid(self.mlp_color(color_in)).view(-1, 3), child_rows)
         cov = take_rows(self.mlp_cov(inputs).view(-1, 7), child_rows)
-        anchor_scale = repeat_rows(scalings, anchor_rows)
-        scales = anchor_scale[:, 3:6] * torch.sigmoid(cov[:, :3])
-        quats = F.normalize(cov[:, 3:7], dim=-1)
+        # split, not two slices: its backward writes each part's gradient once (one cat) where each
+        # slice's would zero-fill a whole [M, 6] / [M, 7] table and the two be added
+        offset_scale, gaussian_scale = repeat_rows(scalings, anchor_rows).split(3, dim=1)
+        cov_scale, cov_rotation = cov.split([3, 4], dim=1)
+        scales = gaussian_scale * torch.sigmoid(cov_scale)
+        quats = F.normalize(cov_rotation, dim=-1)
         means = (repeat_rows(positions, anchor_rows)
-                 + take_rows(offsets.reshape(-1, 3), child_rows) * anchor_scale[:, :3])
+                 + take_rows(offsets.reshape(-1, 3), child_rows) * offset_scale)
         return NeuralGaussians(
             means=means, quats=quats, scales=scales, opacities=take_rows(opacity.view(-1), child_rows),
             colors=colors, anchor_ids=anchor_ids[anchor_rows], child_ids=child_ids,

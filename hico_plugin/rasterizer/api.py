@@ -57,19 +57,19 @@ def rasterize(
     need_normal, need_distance, _ = geometry_channels(outputs, depth_normal_from)
     projected = backend.project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
                                 normals=need_normal or need_distance)
-    means2d_out = projected.means2d if batched else projected.means2d[0]
+    means2d_out = projected.means2d if batched else projected.means2d.squeeze(0)
     means2d = means2d_out if batched else means2d_out[None]  # images depend on means2d_out itself
     features, sizes = _pack_channels(colors, quats, scales, viewmats, projected, outputs, depth_normal_from)
     image, alpha = backend.composite(projected, means2d, opacities, features, width, height,
                                      tile_size or backend.default_tile_size(means.device))
     maps = dict(zip(("rgb", "normal", "distance", "z"), image.split(sizes, -1)))
 
-    result = RenderOutputs(means2d=means2d_out, radii=projected.radii if batched else projected.radii[0])
+    result = RenderOutputs(means2d=means2d_out, radii=projected.radii if batched else projected.radii.squeeze(0))
     _derive_maps(result, maps, alpha, outputs, background, colors, Ks, depth_normal_from,
                  backend.uses_fused_kernels(means.device))
     if not batched:
         for name, rendered in result.images().items():
-            setattr(result, name, rendered[0])
+            setattr(result, name, rendered.squeeze(0))
     return result
 
 

@@ -54,6 +54,47 @@ def test_nonfinite_gradients_reach_only_their_rows():
     assert torch.equal(source.grad[[0, 3]], torch.zeros(2, 1))
 
 
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(5, 3), (7,), ()])
+def test_ascending_rows_are_placed_as_index_copy_places_them(dtype, shape):
+    """Strictly ascending rows (the decoder's): the one-pass placement, bit for bit index_copy_'s, the
+    first and last rows named, runs of unnamed rows between, -0, inf and NaN gradients kept as they are."""
+    source = torch.randn(300, *shape, dtype=dtype, requires_grad=True)
+    rows = torch.cat([torch.tensor([0]), _rows(298, 7) + 1, torch.tensor([299])])
+    grad = torch.randn(rows.numel(), *shape, dtype=dtype)
+    grad[1], grad[2], grad[3] = -0.0, float("inf"), float("nan")
+    take_rows(source, rows).backward(grad)
+    expected = torch.zeros(300, *shape, dtype=dtype).index_copy_(0, rows, grad)
+    assert torch.equal(source.grad.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32),
+                       expected.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32))
+
+
+def test_placement_is_independent_of_threads_and_falls_back_off_its_case():
+    """1, 2, 3 threads (a thread with no named row, threads ending on one) give index_copy_'s table; rows
+    that descend are index_copy_'s own case, and the kernel declines rows that repeat, descend or leave
+    the source (status 1, nothing written)."""
+    grad = torch.randn(40, 4)  # 16-byte rows: the kernel's (narrower rows stay with index_copy_)
+    shape = torch.Size((120, 4))
+    before = torch.get_num_threads()
+    try:
+        for rows in (torch.arange(40) * 3, torch.arange(40) + 80, torch.arange(40).flip(0)):
+            expected = torch.zeros(shape).index_copy_(0, rows, grad)
+            for threads in (1, 2, 3):
+                torch.set_num_threads(threads)
+                assert torch.equal(gather._placed_rows(grad, rows, shape), expected)
+    finally:
+        torch.set_num_threads(before)
+    lib = gather._library()
+    if lib is None:
+        pytest.skip("no C++ compiler: the index_copy_ path was tested")
+    for rows, status in ((torch.arange(40) * 3, 0), (torch.arange(40).flip(0), 1), (torch.tensor([5] * 40), 1),
+                         (torch.arange(40) + 81, 1), (torch.arange(40) - 1, 1)):
+        out = torch.full(shape, 7.0)
+        got = lib.hico_place_rows(gather.pointer(grad), gather.pointer(rows), 40, 16, 120, gather.pointer(out), 2)
+        assert got == status
+        assert torch.equal(out, torch.zeros(shape).index_copy_(0, rows, grad) if status == 0 else torch.full(shape, 7.0))
+
 def _children(count: int, k: int, seed: int) -> torch.Tensor:
     """The anchor of every kept child, as the decoder forms it: ascending, each anchor 0..k times."""
     keep = torch.rand(count, k, generator=torch.Generator().manual_seed(seed)) < 0.6
