@@ -54,7 +54,6 @@ def test_nonfinite_gradients_reach_only_their_rows():
     assert torch.equal(source.grad[[0, 3]], torch.zeros(2, 1))
 
 
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("shape", [(5, 3), (7,), ()])
 def test_ascending_rows_are_placed_as_index_copy_places_them(dtype, shape):
@@ -66,8 +65,8 @@ def test_ascending_rows_are_placed_as_index_copy_places_them(dtype, shape):
     grad[1], grad[2], grad[3] = -0.0, float("inf"), float("nan")
     take_rows(source, rows).backward(grad)
     expected = torch.zeros(300, *shape, dtype=dtype).index_copy_(0, rows, grad)
-    assert torch.equal(source.grad.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32),
-                       expected.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32))
+    bits = torch.int64 if dtype == torch.float64 else torch.int32  # -0 and NaN compared as stored
+    assert torch.equal(source.grad.view(-1).view(bits), expected.view(-1).view(bits))
 
 
 def test_placement_is_independent_of_threads_and_falls_back_off_its_case():
@@ -94,6 +93,7 @@ def test_placement_is_independent_of_threads_and_falls_back_off_its_case():
         got = lib.hico_place_rows(gather.pointer(grad), gather.pointer(rows), 40, 16, 120, gather.pointer(out), 2)
         assert got == status
         assert torch.equal(out, torch.zeros(shape).index_copy_(0, rows, grad) if status == 0 else torch.full(shape, 7.0))
+
 
 def _children(count: int, k: int, seed: int) -> torch.Tensor:
     """The anchor of every kept child, as the decoder forms it: ascending, each anchor 0..k times."""

@@ -26,11 +26,19 @@
 
 namespace {
 
+// Whether rows [m] lie in [0, n) and ascend (strictly: no value twice).
+bool ascending(const int64_t* rows, int64_t m, int64_t n, bool strict) {
+  for (int64_t i = 0; i < m; ++i) {
+    if (rows[i] < 0 || rows[i] >= n || (i > 0 && (strict ? rows[i] <= rows[i - 1] : rows[i] < rows[i - 1]))) {
+      return false;
+    }
+  }
+  return true;
+}
+
 template <typename T>
 int segment_sum(const T* grad, const int64_t* rows, int64_t m, int64_t cols, int64_t n, T* out, int threads) {
-  for (int64_t i = 0; i < m; ++i) {
-    if (rows[i] < 0 || rows[i] >= n || (i > 0 && rows[i] < rows[i - 1])) return 1;
-  }
+  if (!ascending(rows, m, n, false)) return 1;
 #pragma omp parallel num_threads(threads)
   {
     const int64_t parts = omp_get_num_threads(), part = omp_get_thread_num();
@@ -49,9 +57,7 @@ int segment_sum(const T* grad, const int64_t* rows, int64_t m, int64_t cols, int
 }
 
 int place_rows(const char* grad, const int64_t* rows, int64_t m, int64_t bytes, int64_t n, char* out, int threads) {
-  for (int64_t i = 0; i < m; ++i) {
-    if (rows[i] < 0 || rows[i] >= n || (i > 0 && rows[i] <= rows[i - 1])) return 1;
-  }
+  if (!ascending(rows, m, n, true)) return 1;
 #pragma omp parallel num_threads(threads)
   {
     const int64_t parts = omp_get_num_threads(), part = omp_get_thread_num();
