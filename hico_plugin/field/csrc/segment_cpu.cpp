@@ -36,14 +36,22 @@ bool ascending(const int64_t* rows, int64_t m, int64_t n, bool strict) {
   return true;
 }
 
-template <typename T>
-int segment_sum(const T* grad, const int64_t* rows, int64_t m, int64_t cols, int64_t n, T* out, int threads) {
-  if (!ascending(rows, m, n, false)) return 1;
+// Splits the output rows [0, n) among the threads: fn(first, last, i) writes rows [first, last), of
+// which the named ones start at rows[i] (each thread writes only its own rows, so no two collide).
+template <typename Fn>
+void by_output_rows(const int64_t* rows, int64_t m, int64_t n, int threads, Fn fn) {
 #pragma omp parallel num_threads(threads)
   {
     const int64_t parts = omp_get_num_threads(), part = omp_get_thread_num();
     const int64_t first = n * part / parts, last = n * (part + 1) / parts;
-    int64_t i = std::lower_bound(rows, rows + m, first) - rows;
+    fn(first, last, int64_t(std::lower_bound(rows, rows + m, first) - rows));
+  }
+}
+
+template <typename T>
+int segment_sum(const T* grad, const int64_t* rows, int64_t m, int64_t cols, int64_t n, T* out, int threads) {
+  if (!ascending(rows, m, n, false)) return 1;
+  by_output_rows(rows, m, n, threads, [&](int64_t first, int64_t last, int64_t i) {
     for (int64_t r = first; r < last; ++r) {
       T* o = out + r * cols;
       std::fill(o, o + cols, T(0));
@@ -52,17 +60,13 @@ int segment_sum(const T* grad, const int64_t* rows, int64_t m, int64_t cols, int
         for (int64_t c = 0; c < cols; ++c) o[c] += g[c];
       }
     }
-  }
+  });
   return 0;
 }
 
 int place_rows(const char* grad, const int64_t* rows, int64_t m, int64_t bytes, int64_t n, char* out, int threads) {
   if (!ascending(rows, m, n, true)) return 1;
-#pragma omp parallel num_threads(threads)
-  {
-    const int64_t parts = omp_get_num_threads(), part = omp_get_thread_num();
-    const int64_t first = n * part / parts, last = n * (part + 1) / parts;
-    int64_t i = std::lower_bound(rows, rows + m, first) - rows;
+  by_output_rows(rows, m, n, threads, [&](int64_t first, int64_t last, int64_t i) {
     int64_t r = first;
     for (; i < m && rows[i] < last; ++i) {  // zeros up to the next named row, then that row's gradient
       std::memset(out + r * bytes, 0, (rows[i] - r) * bytes);
@@ -70,7 +74,7 @@ int place_rows(const char* grad, const int64_t* rows, int64_t m, int64_t bytes, 
       r = rows[i] + 1;
     }
     std::memset(out + r * bytes, 0, (last - r) * bytes);
-  }
+  });
   return 0;
 }
 
