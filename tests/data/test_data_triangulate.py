@@ -74,6 +74,37 @@ def test_points_triangulated_from_known_poses_lie_on_the_surface(twin, tmp_path,
     assert np.array_equal(again.points.numpy(), dataset.points.numpy())
 
 
+def test_a_fresh_triangulation_gives_the_same_points_every_run(twin, tmp_path, monkeypatch):
+    """Nothing in the result depends on which thread finished first: the same photos and poses give the
+    same points, bit for bit, with nothing cached."""
+    _, out = twin
+    runs = []
+    for run in range(3):
+        monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / f"cache{run}"))
+        runs.append(DataParserConfig(data=out, normalize=False).setup(announce=False).points.numpy())
+    assert len(runs[0]) >= MIN_POINTS
+    assert all(np.array_equal(points, runs[0]) for points in runs[1:])
+
+
+def test_photos_stored_at_a_downscale_of_their_camera_triangulate_onto_the_surface(twin, tmp_path, monkeypatch,
+                                                                                  capsys):
+    """transforms.json may state the camera at twice the size of the files (an exact downscale, as
+    ``images_2`` folders hold): keypoints are in the file's pixels, so the camera is met at that size."""
+    scene, out = twin
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    meta = json.loads((out / "transforms.json").read_text())
+    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+        meta[key] *= 2
+    twice = tmp_path / "twice"
+    shutil.copytree(out / "images", twice / "images")
+    (twice / "transforms.json").write_text(json.dumps(meta))
+    dataset = DataParserConfig(data=twice, normalize=False).setup()
+    assert "random" not in capsys.readouterr().err
+    distance = _surface_distances(scene, dataset.points.double().numpy())
+    assert len(distance) >= MIN_POINTS
+    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
+
+
 def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, monkeypatch, capsys):
     """Mega-NeRF carries no points: they are triangulated from its (DRB, shifted, scaled) poses and
     come out in the source frame, on the scene's surface."""
