@@ -48,6 +48,16 @@ def _surface_distances(scene, points: np.ndarray) -> np.ndarray:
     return cKDTree(surface).query(points)[0]
 
 
+def _assert_triangulated_onto_the_surface(scene, data, capsys) -> None:
+    """The dataset at ``data`` loads with triangulated seed points (no random fallback) on ``scene``'s
+    ground-truth surface."""
+    dataset = DataParserConfig(data=data, normalize=False).setup()
+    assert "random" not in capsys.readouterr().err
+    distance = _surface_distances(scene, dataset.points.double().numpy())
+    assert len(distance) >= MIN_POINTS
+    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
+
+
 def test_points_triangulated_from_known_poses_lie_on_the_surface(twin, tmp_path, monkeypatch, capsys):
     scene, out = twin
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -98,11 +108,7 @@ def test_photos_stored_at_a_downscale_of_their_camera_triangulate_onto_the_surfa
     twice = tmp_path / "twice"
     shutil.copytree(out / "images", twice / "images")
     (twice / "transforms.json").write_text(json.dumps(meta))
-    dataset = DataParserConfig(data=twice, normalize=False).setup()
-    assert "random" not in capsys.readouterr().err
-    distance = _surface_distances(scene, dataset.points.double().numpy())
-    assert len(distance) >= MIN_POINTS
-    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
+    _assert_triangulated_onto_the_surface(scene, twice, capsys)
 
 
 def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, monkeypatch, capsys):
@@ -113,11 +119,7 @@ def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, mon
     scene, _ = twin
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     write_meganerf(scene, tmp_path / "mega")
-    dataset = DataParserConfig(data=tmp_path / "mega", normalize=False).setup()
-    assert "random" not in capsys.readouterr().err
-    distance = _surface_distances(scene, dataset.points.double().numpy())
-    assert len(distance) >= MIN_POINTS
-    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
+    _assert_triangulated_onto_the_surface(scene, tmp_path / "mega", capsys)
 
 
 def test_cache_key_is_the_one_pycolmap_cameras_gave(tmp_path):
@@ -205,8 +207,4 @@ def test_photos_named_with_spaces_are_paired_by_their_centres(twin, tmp_path, mo
         shutil.copy(out / frame["file_path"], spaced / name)
         frame["file_path"] = name
     (spaced / "transforms.json").write_text(json.dumps(meta))
-    dataset = DataParserConfig(data=spaced, normalize=False).setup()
-    assert "random" not in capsys.readouterr().err
-    distance = _surface_distances(scene, dataset.points.double().numpy())
-    assert len(distance) >= MIN_POINTS
-    assert np.median(distance) < SPACING and np.mean(distance < 2 * SPACING) > 0.75
+    _assert_triangulated_onto_the_surface(scene, spaced, capsys)
