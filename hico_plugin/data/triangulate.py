@@ -100,37 +100,29 @@ def _triangulate(data_dir: Path, names: list[str], camera_ids: list[int], camera
     extraction.num_threads = num_threads
     extraction.max_image_size = long_side
     extraction.sift.max_num_features = MAX_FEATURES
+    # COLMAP's pair list splits a line at spaces and skips lines starting with '#'; names it cannot
+    # hold are paired by COLMAP's spatial matcher on the camera centres instead (no angle limit).
+    listable = not any(name.startswith("#") or any(c.isspace() for c in name) for name in names)
+    centres = camera_centres(viewmats)
+    reconstruction = pycolmap.Reconstruction()
     # Each image enters the database with its known camera (at its file's size, where keypoints live)
     # before any feature is extracted, in the order of ``names``: the extractor would number images in
     # the order its threads finish them, and these numbers decide the order the triangulator visits
     # images in and which image of a pair RANSAC verifies from, so the same photos gave other points
     # each run.
     with pycolmap.Database.open(database) as db:
-        for name, camera_id in zip(names, camera_ids):
-            _register_image(db, name, _file_camera(cameras[camera_id], data_dir / name))
-    pycolmap.extract_features(database, data_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
-    index_of = {name: i for i, name in enumerate(names)}
-    # COLMAP's pair list splits a line at spaces and skips lines starting with '#'; names it cannot
-    # hold are paired by COLMAP's spatial matcher on the camera centres instead (no angle limit).
-    listable = not any(name.startswith("#") or any(c.isspace() for c in name) for name in names)
-    centres = camera_centres(viewmats)
-    reconstruction = pycolmap.Reconstruction()
-    with pycolmap.Database.open(database) as db:
-        images = db.read_all_images()
-        for image in images:
-            i = index_of[image.name]
-            reconstruction.add_camera_with_trivial_rig(db.read_camera(image.camera_id))
-            reconstruction.add_image_with_trivial_frame(
-                pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id),
-                pycolmap.Rigid3d(viewmats[i, :3, :4]),
-            )
+        for i, (name, camera_id) in enumerate(zip(names, camera_ids)):
+            camera, image, frame_id = _register_image(db, name, _file_camera(cameras[camera_id], data_dir / name))
+            reconstruction.add_camera_with_trivial_rig(camera)
+            reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(viewmats[i, :3, :4]))
             if not listable:
                 prior = pycolmap.PosePrior(position=centres[i],
                                            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN)
-                prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, image.camera_id),
-                                                     image.frame_id)
+                prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera.camera_id),
+                                                     frame_id)
                 db.write_pose_prior(prior)
+    pycolmap.extract_features(database, data_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = num_threads
     verification = pycolmap.TwoViewGeometryOptions()
@@ -170,19 +162,23 @@ def _file_camera(camera: Camera, path: Path) -> Camera:
     return scaled
 
 
-def _register_image(db: pycolmap.Database, name: str, camera: Camera) -> None:
+def _register_image(db: pycolmap.Database, name: str, camera: Camera) -> tuple[pycolmap.Camera, pycolmap.Image, int]:
     """Writes ``camera``, its one-camera rig, the image ``name`` and its frame into ``db``, as COLMAP's
-    feature extractor writes a photo it has not seen (camera mode PER_IMAGE)."""
+    feature extractor writes a photo it has not seen (camera mode PER_IMAGE). Returns the camera and
+    image with their database ids, and the frame's id."""
     import pycolmap
 
-    camera_id = db.write_camera(camera.to_pycolmap())
-    sensor = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id)
+    written = camera.to_pycolmap()
+    written.camera_id = db.write_camera(written)
+    sensor = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, written.camera_id)
     rig = pycolmap.Rig()
     rig.add_ref_sensor(sensor)
+    image = pycolmap.Image(name=name, camera_id=written.camera_id)
+    image.image_id = db.write_image(image)
     frame = pycolmap.Frame()
     frame.rig_id = db.write_rig(rig)
-    frame.add_data_id(pycolmap.data_t(sensor, db.write_image(pycolmap.Image(name=name, camera_id=camera_id))))
-    db.write_frame(frame)
+    frame.add_data_id(pycolmap.data_t(sensor, image.image_id))
+    return written, image, db.write_frame(frame)
 
 
 def pose_pairs(viewmats: np.ndarray, neighbours: int = POSE_NEIGHBOURS,
