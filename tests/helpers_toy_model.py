@@ -4,7 +4,7 @@ own checks are in engine/test_engine_toy_model.py).
 The toy "renders" N coloured 2-D blobs, shifted by the camera's x/y translation, through a small
 colour MLP. It has what the real model has that matters to the engine: two parameter groups, one of
 which changes its row count when the model "densifies" (split the most
-useful one in two halves), densification statistics from per-view gradients reduced over workers, buffers in
+useful one in two halves), optionally row-sparse gradients of the blobs a view draws, densification statistics from per-view gradients reduced over workers, buffers in
 the state dict, optional global-RNG use, and an optional NaN loss at chosen steps.
 """
 
@@ -24,6 +24,7 @@ from hico_plugin.engine import TrainerConfig
 from hico_plugin.engine.distributed import all_reduce_sum_
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainBatch
+from hico_plugin.field.gather import take_rows
 
 
 def pixel_grid(height: int, width: int) -> Tensor:
@@ -43,7 +44,7 @@ def render_blobs(features: Tensor, centers: Tensor, mlp: nn.Linear, camera: Came
 
 class ToyModel(nn.Module):
     def __init__(self, num_blobs: int, size: int, seed: int, densify_every: int, densify_until: int,
-                 noise: float = 0.0, sigma: float = 2.0):
+                 noise: float = 0.0, sigma: float = 2.0, sparse_rows: bool = False):
         super().__init__()
         generator = torch.Generator().manual_seed(seed)
         self.features = nn.Parameter(torch.randn(num_blobs, 3, generator=generator))
@@ -58,6 +59,7 @@ class ToyModel(nn.Module):
         self.densify_until = densify_until
         self.noise = noise
         self.sigma = sigma
+        self.sparse_rows = sparse_rows
         self.nan_steps: set[int] = set()
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
@@ -72,10 +74,7 @@ class ToyModel(nn.Module):
     def train_step(self, batch: TrainBatch, step: int) -> StepOutput:
         # One zero offset per view, like the rasterizer's means2d: its grad is a per-view statistic.
         view_offsets = [torch.zeros_like(self.centers, requires_grad=True) for _ in batch.cameras]
-        preds = torch.stack([
-            render_blobs(self.features, self.centers + offset, self.mlp, camera, self.sigma)
-            for camera, offset in zip(batch.cameras, view_offsets)
-        ])
+        preds = torch.stack([self._render(camera, offset, step) for camera, offset in zip(batch.cameras, view_offsets)])
         if self.noise:
             preds = preds + self.noise * torch.randn_like(preds)
         mse = ((preds - batch.images) ** 2).mean()
@@ -83,6 +82,15 @@ class ToyModel(nn.Module):
         psnr = -10 * torch.log10(mse.detach())
         return StepOutput(loss=loss, metrics={"psnr": psnr, "loss/mse": mse.detach()},
                           extras={"view_offsets": view_offsets, "batch_size": len(batch)})
+
+    def _render(self, camera: Camera, offset: Tensor, step: int) -> Tensor:
+        if not self.sparse_rows:
+            return render_blobs(self.features, self.centers + offset, self.mlp, camera, self.sigma)
+        # Each view draws every other blob (which half depends on the view and the step), through
+        # gathers with row-sparse gradients, as the anchor field's rows are.
+        rows = torch.arange((step + int(camera.viewmat[0, 3] > 0)) % 2, self.features.shape[0], 2)
+        centers = take_rows(self.centers, rows, sparse_grad=True) + take_rows(offset, rows)
+        return render_blobs(take_rows(self.features, rows, sparse_grad=True), centers, self.mlp, camera, self.sigma)
 
     def after_backward(self, step: int, output: StepOutput) -> None:
         # x batch size undoes the mean over the batch, so the statistic does not depend on how
@@ -179,10 +187,11 @@ class ToyModelConfig(InstantiateConfig):
     densify_until: int = 20
     noise: float = 0.0
     nan_steps: tuple[int, ...] = field(default_factory=tuple)
+    sparse_rows: bool = False
 
     def setup(self, dataset: ToyDataset, **kwargs) -> ToyModel:
         model = ToyModel(self.num_blobs, dataset.cameras[0].width, self.seed, self.densify_every,
-                         self.densify_until, self.noise)
+                         self.densify_until, self.noise, sparse_rows=self.sparse_rows)
         model.nan_steps = set(self.nan_steps)
         return model
 

@@ -24,6 +24,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from hico_plugin.row_sparse import sparse_rows
+
 # The group entries torch.optim.Adam writes into a state_dict besides lr, betas and eps.
 _TORCH_GROUP_DEFAULTS = {"weight_decay": 0, "amsgrad": False, "maximize": False, "foreach": None,
                          "capturable": False, "differentiable": False, "fused": True,
@@ -34,7 +36,8 @@ class Adam:
     """``torch.optim.Adam(params, lr, betas, eps, fused=True)`` for one group: ``param_groups[0]["lr"]``
     may be changed between steps; ``state[param]`` holds ``step`` (a float32 scalar tensor on the
     parameter's device, where the fused kernel reads it), ``exp_avg`` and ``exp_avg_sq``, created at a
-    parameter's first step with a gradient."""
+    parameter's first step with a gradient. A sparse COO gradient (rows of a dense parameter, e.g. from
+    ``take_rows(sparse_grad=True)``) updates only its rows."""
 
     def __init__(self, params: Iterable[Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
                  eps: float = 1e-8):
@@ -58,10 +61,32 @@ class Adam:
             states.append(state)
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1)
+        dense = [i for i, param in enumerate(params) if not param.grad.is_sparse]
+        if dense:
+            self._fused([params[i] for i in dense], [params[i].grad for i in dense],
+                        [states[i] for i in dense], [steps[i] for i in dense])
+        for param, state, step in zip(params, states, steps):
+            if param.grad.is_sparse:
+                self._rows_step(param, state, step)
+
+    def _fused(self, params: list[Tensor], grads: list[Tensor], states: list[dict[str, Tensor]],
+               steps: list[Tensor]) -> None:
+        group = self.param_groups[0]
         beta1, beta2 = group["betas"]
-        torch._fused_adam_(params, [param.grad for param in params], [state["exp_avg"] for state in states],
+        torch._fused_adam_(params, grads, [state["exp_avg"] for state in states],
                            [state["exp_avg_sq"] for state in states], [], steps, lr=group["lr"], beta1=beta1,
                            beta2=beta2, weight_decay=0.0, eps=group["eps"], amsgrad=False, maximize=False)
+
+    def _rows_step(self, param: Tensor, state: dict[str, Tensor], step: Tensor) -> None:
+        """Adam on the rows a row-sparse gradient names only (Taming 3DGS's sparse Adam, gsplat's
+        ``sparse_grad``): those rows and their moments get exactly the dense update, with the bias
+        correction of the global step; every other row and its moments stay as they are."""
+        rows, values = sparse_rows(param.grad)
+        taken = [param.index_select(0, rows), state["exp_avg"].index_select(0, rows),
+                 state["exp_avg_sq"].index_select(0, rows)]
+        self._fused([taken[0]], [values.contiguous()], [{"exp_avg": taken[1], "exp_avg_sq": taken[2]}], [step])
+        for target, updated in zip((param, state["exp_avg"], state["exp_avg_sq"]), taken):
+            target.index_copy_(0, rows, updated)
 
     def zero_grad(self) -> None:
         """Drop the gradients (torch's default, ``set_to_none=True``): the next backward allocates them."""

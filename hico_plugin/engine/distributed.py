@@ -18,6 +18,7 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from hico_plugin.errors import HicoError
+from hico_plugin.row_sparse import sparse_rows
 
 
 def is_distributed() -> bool:
@@ -100,15 +101,34 @@ def average_gradients_(params: Iterable[nn.Parameter]) -> None:
     params = [p for p in params if p.requires_grad]
     if not params:
         return
-    flat = torch.cat(
-        [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params]
-    )
-    all_reduce_mean_(flat)
+    # A parameter with a row-sparse gradient on any rank keeps one: its rows become those any rank
+    # touched (a row counts as touched by its presence, whatever its value), as one process would name
+    # the rows of all the views of the global batch.
+    sparse = torch.tensor([p.grad is not None and p.grad.is_sparse for p in params], dtype=torch.float32)
+    all_reduce_sum_(sparse)
+    row_sparse = [bool(flag > 0) for flag in sparse]
+    parts = []
+    for p, rows in zip(params, row_sparse):
+        grad = torch.zeros_like(p) if p.grad is None else p.grad.to_dense() if p.grad.is_sparse else p.grad
+        parts.append(grad.reshape(-1))
+        if rows:
+            touched = torch.zeros(p.shape[0], dtype=p.dtype, device=p.device)
+            if p.grad is not None and p.grad.is_sparse:
+                touched[sparse_rows(p.grad)[0]] = 1
+            parts.append(touched)
+    flat = torch.cat(parts)
+    all_reduce_sum_(flat)
     offset = 0
-    for p in params:
+    for p, rows in zip(params, row_sparse):
         size = p.numel()
-        p.grad = flat[offset : offset + size].view_as(p).clone()
+        grad = flat[offset : offset + size].view_as(p) / get_world_size()
         offset += size
+        if rows:
+            touched = flat[offset : offset + p.shape[0]].nonzero().squeeze(1)
+            offset += p.shape[0]
+            p.grad = torch.sparse_coo_tensor(touched[None], grad[touched], p.shape, is_coalesced=True)
+        else:
+            p.grad = grad
 
 
 def broadcast_module_(module: nn.Module) -> None:

@@ -24,6 +24,7 @@ the last adjustment (grown per level, pruned) are in ``field.last_densify``.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field as dataclass_field
 from typing import Any, Callable
 
@@ -33,6 +34,7 @@ from torch import Tensor, nn
 from hico_plugin.cameras import Camera, Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
+from hico_plugin.field.chunks import AnchorChunks
 from hico_plugin.field.context import ContextConfig
 from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
 from hico_plugin.field.context_graph import cell_keys
@@ -41,6 +43,12 @@ from hico_plugin.field.densify import (DensifyConfig, GrownAnchors, close_ancest
                                        grow_anchors, offset_gradients, prune_decision, rows_in)
 from hico_plugin.field.lod import active_level_count, frustum_visible, lod_visible, progressive_interval_ends
 from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree, knn_log_scale
+from hico_plugin.row_sparse import sparse_rows
+
+def anchor_radii(log_scaling: Tensor) -> Tensor:
+    """World-space extent of each anchor's Gaussians, 3 sigma of its largest offset scale: [N] from [N,6]."""
+    return 3.0 * torch.exp(log_scaling[:, :3]).amax(1)
+
 
 # Parameter groups whose rows are anchors (resized by densification), and the attribute holding each.
 ANCHOR_GROUPS = {"anchor": "anchors", "offset": "offsets", "anchor_feat": "anchor_features",
@@ -81,6 +89,13 @@ class FieldConfig(InstantiateConfig):
     """Anchors closer than this to the camera plane (z) are culled."""
     train_anchor_positions: bool = True
     """Anchor positions get a learning rate (CityGS-X); False freezes them (Octree-GS, Scaffold-GS)."""
+    sparse_grad: bool = False
+    """Per-anchor parameters get row-sparse gradients and Adam updates only the anchors a step decoded
+    (Taming 3DGS's sparse Adam, gsplat's sparse_grad), so a step costs what its views see. False: the
+    dense update of the base code, in which every anchor's moments and values move every step."""
+    chunk_size: int = 512
+    """Anchors per chunk of the view culling: a view tests the chunks' bounds, then the anchors of the
+    chunks it may see; 0 tests every anchor of the model for every view."""
 
     def setup(self, points: Tensor | None = None, train_cameras: Cameras | None = None,
               num_train_cameras: int | None = None, schedule_scale: float = 1.0,
@@ -142,6 +157,8 @@ class AnchorField(nn.Module):
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
         self.set_schedule_scale(schedule_scale)
         self.last_densify: dict[str, int] = {}
+        self._chunks: AnchorChunks | None = None
+        self._chunks_of: tuple = ()  # (weakref, version) of each tensor the chunks' bounds read
         # The octree's own anchors, the base of a relative anchor budget. A resumed run rebuilds the
         # same octree from the same data before loading its checkpoint, so this stays the run's.
         self.initial_anchors = num
@@ -178,15 +195,21 @@ class AnchorField(nn.Module):
 
         step: training step (progressive levels) or None at eval (all levels). distance_scale
         multiplies the camera distance in Eq. 1 (>1 picks coarser levels; the viewer's LOD control).
-        Returns visible_ids [V] long, ascending.
+        Returns visible_ids [V] long, ascending. Only the anchors of the chunks the view may see are
+        tested (``chunks.py``); the result is the rule's over every anchor.
         """
-        return self.sees(camera, None, step, distance_scale).nonzero().squeeze(1)
+        if self.config.chunk_size <= 0:
+            return self.sees(camera, None, step, distance_scale).nonzero().squeeze(1)
+        rows = self.chunks().candidates(camera, self.grid, self.active_levels(step), distance_scale,
+                                        self.config.near, self.config.frustum_margin)
+        if 2 * rows.numel() > self.num_anchors:  # a view of most of the model: test all, no gather or sort
+            return self.sees(camera, None, step, distance_scale).nonzero().squeeze(1)
+        return rows[self.sees(camera, rows, step, distance_scale)].sort().values
 
     @torch.no_grad()
-    def sees(self, camera: Camera, ids: Tensor | None = None, step: int | None = None,
-             distance_scale: float = 1.0) -> Tensor:
-        """Which of the anchors ``ids`` [V] long (None: all N) ``camera`` decodes, by ``select``'s
-        rule: [V] bool (or [N])."""
+    def sees(self, camera: Camera, ids: Tensor | None, step: int | None = None, distance_scale: float = 1.0) -> Tensor:
+        """Which of the anchors ``ids`` [V] long (None: all N) ``camera`` decodes, by ``select``'s rule:
+        [V] bool."""
         positions, levels = self.anchors.detach(), self.levels
         extra_level, log_scaling = self.extra_level, self.log_scaling.detach()
         if ids is not None:
@@ -197,10 +220,60 @@ class AnchorField(nn.Module):
                            distance_scale)
         # frustum test only on the LOD survivors: the cheaper test first
         candidates = seen.nonzero().squeeze(1)
-        radii = 3.0 * torch.exp(log_scaling[candidates, :3]).amax(1)  # 3-sigma anchor extent
-        seen[candidates] = frustum_visible(positions[candidates], radii, camera, self.config.near,
-                                           self.config.frustum_margin)
+        seen[candidates] = frustum_visible(positions[candidates], anchor_radii(log_scaling[candidates]), camera,
+                                           self.config.near, self.config.frustum_margin)
         return seen
+
+    # ----- view culling by chunks -----------------------------------------------------------------
+
+    def _bounded_tensors(self) -> tuple[Tensor, ...]:
+        return self.anchors, self.log_scaling, self.levels, self.extra_level
+
+    def _record_chunk_state(self) -> None:
+        self._chunks_of = tuple((weakref.ref(t), t._version) for t in self._bounded_tensors())
+
+    def _chunk_state_current(self) -> tuple[bool, bool]:
+        """(same anchors as the chunks group, every bounded tensor unchanged since the bounds)."""
+        if not self._chunks_of or self._chunks is None or self._chunks.order.device != self.anchors.device:
+            return False, False
+        same = [ref() is t for (ref, _), t in zip(self._chunks_of, self._bounded_tensors())]
+        unchanged = [ref() is t and version == t._version
+                     for (ref, version), t in zip(self._chunks_of, self._bounded_tensors())]
+        return same[0] and same[2], all(unchanged)
+
+    @torch.no_grad()
+    def chunks(self) -> AnchorChunks:
+        """The anchors' chunks with bounds that hold for today's values: regrouped when the anchors
+        changed (densification, loading), bounds recomputed when a value changed unseen by
+        ``after_update``."""
+        grouped, current = self._chunk_state_current()
+        if not current:
+            radii = anchor_radii(self.log_scaling.detach())
+            if grouped and self._chunks is not None:
+                self._chunks.refresh(self.anchors.detach(), self.levels, self.extra_level, radii)
+            else:
+                self._chunks = AnchorChunks.build(self.anchors.detach(), self.levels, self.extra_level, radii,
+                                                  self.grid, self.config.chunk_size)
+            self._record_chunk_state()
+        return self._chunks
+
+    @torch.no_grad()
+    def after_update(self) -> None:
+        """After the optimizer step: widen the chunks' bounds to the rows it moved (the rows of the
+        position and scaling gradients when row-sparse; all rows otherwise)."""
+        if self._chunks is None or not self._chunk_state_current()[0]:
+            return
+        grads = [self.anchors.grad, self.log_scaling.grad]
+        if any(grad is not None and not grad.is_sparse for grad in grads):
+            self._chunks.refresh(self.anchors.detach(), self.levels, self.extra_level,
+                                 anchor_radii(self.log_scaling.detach()))
+        else:
+            moved = [sparse_rows(grad)[0] for grad in grads if grad is not None]
+            if moved:
+                rows = torch.cat(moved).unique() if len(moved) > 1 else moved[0]
+                self._chunks.expand(rows, self.anchors.detach()[rows],
+                                    anchor_radii(self.log_scaling.detach()[rows]))
+        self._record_chunk_state()
 
     def decode(self, camera: Camera, visible_ids: Tensor, context_enabled: bool = True) -> NeuralGaussians:
         """Neural Gaussians of the visible anchors that are drawn; CLCA enhances their features
@@ -216,7 +289,7 @@ class AnchorField(nn.Module):
     def enhanced_features(self, visible_ids: Tensor, context_enabled: bool = True) -> Tensor:
         """Features [V,d] of the anchors ``visible_ids`` [V] long (ascending), CLCA-enhanced with
         contexts read among those anchors only, unless disabled."""
-        features = take_rows(self.anchor_features, visible_ids)
+        features = take_rows(self.anchor_features, visible_ids, self.config.sparse_grad)
         if context_enabled and self.context.reads_context:
             features = self.context(features, self.context.graph(self.levels, self.anchors, visible_ids, self.grid))
         return features
@@ -226,9 +299,10 @@ class AnchorField(nn.Module):
         viewed from ``eyes``: [3] one camera centre, or [V,3] one viewpoint per anchor (an export's
         canonical views). appearance_index: the training slot of the appearance embedding (-1: the
         mean, neutral appearance)."""
-        positions = take_rows(self.anchors, ids)
-        return self.decoder(features, positions, take_rows(self.offsets, ids),
-                            torch.exp(take_rows(self.log_scaling, ids)), self.levels.index_select(0, ids),
+        sparse = self.config.sparse_grad
+        positions = take_rows(self.anchors, ids, sparse)
+        return self.decoder(features, positions, take_rows(self.offsets, ids, sparse),
+                            torch.exp(take_rows(self.log_scaling, ids, sparse)), self.levels.index_select(0, ids),
                             eyes, appearance_index, ids)
 
     # ----- optimisation -----------------------------------------------------------------------------

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.native import NativeKernel, pointer
+from hico_plugin.row_sparse import row_sparse
 
 KERNEL = NativeKernel("hico_segment_cpu", Path(__file__).parent / "csrc" / "segment_cpu.cpp",
                       "row-sum kernel", "torch's index_add_")
@@ -32,24 +33,28 @@ _SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
 
 class _TakeRows(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, source: Tensor, rows: Tensor) -> Tensor:
+    def forward(ctx, source: Tensor, rows: Tensor, sparse_grad: bool) -> Tensor:
         ctx.save_for_backward(rows)
-        ctx.source_shape = source.shape
+        ctx.source_shape, ctx.sparse_grad = source.shape, sparse_grad
         return source.index_select(0, rows)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         (rows,) = ctx.saved_tensors
-        return _placed_rows(grad, rows, ctx.source_shape), None
+        if ctx.sparse_grad:
+            return row_sparse(grad, rows, ctx.source_shape), None, None
+        return _placed_rows(grad, rows, ctx.source_shape), None, None
 
 
-def take_rows(source: Tensor, rows: Tensor) -> Tensor:
+def take_rows(source: Tensor, rows: Tensor, sparse_grad: bool = False) -> Tensor:
     """source [R, ...], rows [M] long with no value twice -> source[rows] [M, ...]: the values and
     gradient of ``source.index_select(0, rows)`` (a repeated row would get one of its gradients, not
-    their sum)."""
+    their sum). ``sparse_grad``: source's gradient is row-sparse (``hico_plugin.row_sparse``), holding
+    only ``rows``, so the backward writes nothing of the size of ``source`` and the optimizer can
+    update just those rows."""
     if not source.requires_grad:
         return source.index_select(0, rows)
-    return _TakeRows.apply(source, rows)
+    return _TakeRows.apply(source, rows, sparse_grad)
 
 
 @cache

@@ -45,7 +45,7 @@ def lod_visible(positions: Tensor, levels: Tensor, extra_level: Tensor, camera_c
     ``||p_i - c||`` as in the paper's Eq. 1 (the base code adds a half-voxel shift to p first; the
     paper does not, and anchors here sit on their grid points, so no shift is applied).
     """
-    dist = (positions - camera_center).norm(dim=-1) * distance_scale
+    dist = _row_norm(positions - camera_center) * distance_scale
     predicted = lod_levels_from_distance(dist, grid, extra_level, max_level=active_levels - 1)
     return levels <= predicted
 
@@ -59,7 +59,9 @@ def frustum_visible(positions: Tensor, radii: Tensor, camera: Camera, near: floa
     """
     viewmat = camera.viewmat.to(positions)
     K = camera.K.to(positions)
-    cam = positions @ viewmat[:3, :3].T + viewmat[:3, 3]
+    # elementwise, not a matrix product: an anchor's result must not depend on which others are tested
+    cam = (positions[:, 0:1] * viewmat[:3, 0] + positions[:, 1:2] * viewmat[:3, 1]
+           + positions[:, 2:3] * viewmat[:3, 2] + viewmat[:3, 3])
     z = cam[:, 2]
     in_front = z > near
     z_safe = torch.where(in_front, z, torch.ones_like(z))
@@ -71,3 +73,9 @@ def frustum_visible(positions: Tensor, radii: Tensor, camera: Camera, near: floa
     inside = (u > -pad_u) & (u < camera.width + pad_u) & (v > -pad_v) & (v < camera.height + pad_v)
     return in_front & inside
 
+
+
+def _row_norm(vectors: Tensor) -> Tensor:
+    """Euclidean norm of each row of [N,3], elementwise, so a row's value is the same in any batch."""
+    x, y, z = vectors.unbind(-1)
+    return torch.sqrt(x * x + y * y + z * z)

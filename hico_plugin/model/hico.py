@@ -332,6 +332,7 @@ class HiCoModel(nn.Module):
             self.field.accumulate_stats(gaussians, grad * batch_size, out.radii, camera, step)
 
     def after_optimizer_step(self, step: int, optimizers: Any) -> None:
+        self.field.after_update()
         if not self.field.is_densify_step(step):
             return
         # Every worker must grow and prune identically: sum the statistics over workers first.

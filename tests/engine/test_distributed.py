@@ -17,9 +17,9 @@ from helpers_toy_model import ToyDataConfig, ToyModelConfig
 MAX_STEPS = 16  # densifies at steps 4, 9 and 14: parameter shapes change 3 times
 
 
-def _config(output_dir: Path, batch_size: int, resume: bool = False) -> TrainerConfig:
+def _config(output_dir: Path, batch_size: int, resume: bool = False, sparse_rows: bool = False) -> TrainerConfig:
     return TrainerConfig(
-        output_dir=output_dir, data=ToyDataConfig(), model=ToyModelConfig(densify_until=MAX_STEPS),
+        output_dir=output_dir, data=ToyDataConfig(), model=ToyModelConfig(densify_until=MAX_STEPS, sparse_rows=sparse_rows),
         max_steps=MAX_STEPS, batch_size=batch_size, seed=5, device="cpu", save_every=8, eval_every=8,
         log_every=1, progress="none", vis="none", resume=resume,
         distributed_timeout_minutes=1.0,
@@ -46,12 +46,12 @@ class _StopAfter(TrainerCallback):
             self.trainer.request_stop()
 
 
-def _worker(rank: int, world_size: int, port: int, output_dir: str, results_dir: str) -> None:
+def _worker(rank: int, world_size: int, port: int, output_dir: str, results_dir: str, sparse_rows: bool) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank),
                       WORLD_SIZE=str(world_size), LOCAL_RANK=str(rank))
     torch.set_num_threads(1)
     try:
-        first = _config(Path(output_dir), batch_size=1).setup(callbacks=[_StopAfter(6)])
+        first = _config(Path(output_dir), batch_size=1, sparse_rows=sparse_rows).setup(callbacks=[_StopAfter(6)])
         # The collective helpers the model uses for its statistics.
         probe = torch.tensor([float(rank + 1)])
         assert all_reduce_sum_(probe.clone()).item() == 3.0
@@ -61,7 +61,7 @@ def _worker(rank: int, world_size: int, port: int, output_dir: str, results_dir:
         assert stopped.interrupted and stopped.step == 7
         assert (stopped.checkpoint is not None) == (rank == 0)
         # Every rank resumes from rank 0's checkpoint, with its own RNG state.
-        resumed = _config(Path(output_dir), batch_size=1, resume=True).setup()
+        resumed = _config(Path(output_dir), batch_size=1, resume=True, sparse_rows=sparse_rows).setup()
         assert resumed.step == 7
         resumed.train()
         torch.save(resumed.model.state_dict(), Path(results_dir) / f"rank{rank}.pt")
@@ -80,12 +80,16 @@ def test_helpers_are_no_ops_on_one_process():
 
 
 @pytest.mark.skipif(not torch.distributed.is_gloo_available(), reason="torch built without gloo")
-def test_two_workers_batch_one_match_one_worker_batch_two(tmp_path):
+@pytest.mark.parametrize("sparse_rows", [False, True], ids=["dense", "row-sparse"])
+def test_two_workers_batch_one_match_one_worker_batch_two(tmp_path, sparse_rows):
+    """Row-sparse gradients too: the rows updated are those any worker's view touched, as one
+    process's batch of both views touches them."""
     results_dir = tmp_path / "results"
     results_dir.mkdir()
-    mp.spawn(_worker, args=(2, _free_port(), str(tmp_path / "ddp"), str(results_dir)), nprocs=2, join=True)
+    mp.spawn(_worker, args=(2, _free_port(), str(tmp_path / "ddp"), str(results_dir), sparse_rows), nprocs=2,
+             join=True)
 
-    single = _config(tmp_path / "single", batch_size=2).setup()
+    single = _config(tmp_path / "single", batch_size=2, sparse_rows=sparse_rows).setup()
     single.train()
     reference = single.model.state_dict()
     rank0 = torch.load(results_dir / "rank0.pt")

@@ -84,3 +84,36 @@ def test_continues_a_default_torch_adam_state_to_float32_rounding():
     _train(torch_adam, start, range(4, 8))
     for a, b in zip(ours, start):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_row_sparse_gradient_updates_its_rows_as_the_dense_update_and_no_other():
+    """Rows a sparse gradient names take the dense update (the global step's bias correction; to float32
+    rounding, as the fused kernel's vector and scalar lanes may differ); every other row and its
+    moments stay exactly as they were (Taming 3DGS's sparse Adam)."""
+    generator = torch.Generator().manual_seed(4)
+    dense_param = nn.Parameter(torch.randn(10, 2, 3, generator=generator))
+    sparse_param = nn.Parameter(dense_param.detach().clone())
+    dense, sparse = Adam([dense_param], lr=0.01, eps=1e-15), Adam([sparse_param], lr=0.01, eps=1e-15)
+    for step in range(4):  # every row touched: the two agree exactly
+        grad = torch.randn(10, 2, 3, generator=generator)
+        dense_param.grad, sparse_param.grad = grad.clone(), grad.to_sparse(1)
+        dense.step()
+        sparse.step()
+    assert torch.equal(dense_param, sparse_param)
+    rows = torch.tensor([1, 4, 7])
+    before = sparse_param.detach().clone()
+    moments = {k: v.clone() for k, v in sparse.state[sparse_param].items()}
+    grad = torch.randn(3, 2, 3, generator=generator)
+    full = torch.zeros(10, 2, 3).index_copy_(0, rows, grad)
+    dense_param.grad = full
+    sparse_param.grad = torch.sparse_coo_tensor(rows[None], grad, (10, 2, 3))
+    dense.step()
+    sparse.step()
+    torch.testing.assert_close(sparse_param[rows], dense_param[rows], rtol=1e-6, atol=0)
+    untouched = torch.tensor([0, 2, 3, 5, 6, 8, 9])
+    assert torch.equal(sparse_param[untouched], before[untouched])
+    state = sparse.state[sparse_param]
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert torch.equal(state[key][untouched], moments[key][untouched])
+        torch.testing.assert_close(state[key][rows], dense.state[dense_param][key][rows], rtol=1e-6, atol=0)
+    assert float(state["step"]) == 5.0

@@ -6,6 +6,7 @@ import torch
 
 from hico_plugin.field import gather
 from hico_plugin.field.gather import repeat_rows, take_rows
+from hico_plugin.row_sparse import sparse_rows
 
 
 def _rows(count: int, seed: int) -> torch.Tensor:
@@ -155,4 +156,37 @@ def test_repeat_rows_hard_cases():
         torch.set_num_threads(before)
     assert torch.equal(sums[0], sums[1]) and torch.equal(sums[0], sums[2])
     assert torch.equal(sums[0], torch.zeros(1000, 3).index_add_(0, rows, grad[: rows.numel()]))
+
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(40, 5, 3), (40,)])
+def test_sparse_gradient_names_only_the_rows_and_equals_the_dense_one(shape, dtype):
+    """The dense gradient (gradchecked above) bit for bit, laid out as the rows it names."""
+    source = torch.randn(*shape, dtype=dtype, requires_grad=True)
+    for rows in (_rows(40, 3), _rows(40, 4).flip(0), torch.zeros(0, dtype=torch.long)):
+        weights = torch.randn(rows.numel(), *shape[1:], dtype=dtype)
+        source.grad = None
+        (take_rows(source, rows, sparse_grad=True) * weights).sum().backward()
+        sparse = source.grad
+        assert sparse.is_sparse and sparse.shape == source.shape
+        assert sparse._nnz() == rows.numel()
+        named, values = sparse_rows(sparse)
+        assert torch.equal(named, rows.sort().values) and values.shape == (rows.numel(), *shape[1:])
+        source.grad = None
+        (take_rows(source, rows) * weights).sum().backward()
+        assert torch.equal(sparse.to_dense(), source.grad)
+
+
+def test_sparse_gradients_of_two_gathers_add_up():
+    """A batch of two views gathers overlapping rows; the gradients accumulate to the dense sum."""
+    source = torch.randn(30, 4, requires_grad=True)
+    first, second = _rows(30, 5), _rows(30, 6)
+    w1, w2 = torch.randn(first.numel(), 4), torch.randn(second.numel(), 4)
+    ((take_rows(source, first, True) * w1).sum() + (take_rows(source, second, True) * w2).sum()).backward()
+    sparse = source.grad
+    source.grad = None
+    ((take_rows(source, first) * w1).sum() + (take_rows(source, second) * w2).sum()).backward()
+    assert torch.equal(sparse.to_dense(), source.grad)
+    assert torch.equal(sparse_rows(sparse)[0], torch.cat([first, second]).unique())
 
