@@ -62,31 +62,23 @@ def _paper() -> HiCoTrainerConfig:
 def _lite() -> HiCoTrainerConfig:
     """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 3,500-step schedule.
 
-    Five changes besides the length. Anchors are adjusted every 750 reference steps (75 of this run's)
-    instead of every 100 (10 of this run's): scaled down that far, each decision would average the
-    gradients of ~10 views, and the noisy means grow anchors the CPU cannot afford. And photos larger
-    than 320 px train coarse to fine (``ResolutionSchedule``: from a quarter of the size, but never
-    below a 320 px long side, to full size at the last step, the pixels per view rising with the cube
-    of the run's progress, so half way a view has an eighth of the pixels the schedule adds); smaller
-    photos, such as the built-in scenes', train at full size throughout. On instant-ngp's fox (seeds
-    0-2, back to back) the cube took 0.76x the wall time of a linear rise for -0.07 +- 0.22 dB
-    colour-corrected, -0.27 raw, SSIM -0.003; ``--resolution.ramp-power 1`` is the linear rise. And
-    octree levels only where they measured better than one flat level (``lod_rule="measured"``): views
-    at different distances and runs of 1,000 steps or more.
-    And the coarse-to-fine levels all switch on by a sixth of the run (``coarse_steps`` 5,000 reference
-    steps) instead of CityGS-X's third: a short run spends too few steps on its finest levels otherwise
-    (city-block, seeds 0-2: +0.17 +- 0.06 dB paired, normal error unchanged, 27 % more anchors);
-    ``--model.field.coarse-steps 10000`` restores the paper's schedule. And the final evaluation's LPIPS
-    uses AlexNet, the LPIPS project's default and splatfacto's and gsplat's, not VGG-16: at 540x960 a
-    view takes 0.5 s instead of 10 (``--model.eval-lpips vgg`` for the paper's column). The length buys
-    quality for time: 3,500 steps against 3,000 scored +0.21 / +0.19 / +0.03 dB on city-block (seeds
-    0-2, 29.34 dB mean), normal error lower on each seed, for 1.20x the wall time (seed 0, back to
-    back) and about 5 % more anchors; ``--max-steps 3000`` is the shorter run."""
-    config = _with(_paper(), "hico-gs-lite", max_steps=3_500, eval_every=0, save_every=500,
+    Five changes besides the length (their figures: benchmarks/RESULTS.md, "Figures behind the defaults"):
+    - anchors adjusted every 750 reference steps, not 100: scaled down to this run, each decision would
+      average the gradients of a handful of views, and the noisy means grow anchors the CPU cannot afford;
+    - photos larger than 320 px train coarse to fine (``ResolutionSchedule``: from a quarter of the size,
+      never below a 320 px long side, to full size at the last step, the pixels rising with the cube of
+      the run's progress); smaller photos, such as the built-in scenes', train at full size throughout;
+    - octree levels only where they beat one flat level (``lod_rule="measured"``);
+    - every octree level on by a sixth of the run (``coarse_steps`` 5,000 reference steps) instead of
+      CityGS-X's third, so a short run trains its finest levels long enough;
+    - the final LPIPS with AlexNet (the LPIPS project's, splatfacto's and gsplat's default), much faster
+      than VGG-16 on large photos (``--model.eval-lpips vgg`` for the paper's column)."""
+    config = _with(_paper(), "hico-gs-lite", max_steps=3_500, steps_photos=64, eval_every=0, save_every=500,
                    resolution=ResolutionSchedule(start_scale=0.25, full_at=1.0, min_long_side=320,
                                                   ramp_power=3.0))
     field = config.model.field
-    field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750), coarse_steps=5_000)
+    field = dataclasses.replace(field, densify=dataclasses.replace(field.densify, interval=750), coarse_steps=5_000,
+                                sparse_grad=True)
     return dataclasses.replace(config, model=dataclasses.replace(config.model, field=field, lod_rule="measured",
                                                                  eval_lpips="alex"))
 

@@ -13,6 +13,8 @@ the step just run. The model's schedules use the same optimizer-step counter.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import sys
 import threading
 from dataclasses import dataclass, field as dataclass_field
@@ -82,7 +84,11 @@ class TrainerConfig(InstantiateConfig):
     model: InstantiateConfig | None = None
     """Model config; ``model.setup(dataset=...)`` returns the model."""
     max_steps: int = 30_000
-    """Number of optimizer steps."""
+    """Number of optimizer steps (for a capture of up to steps_photos training photos)."""
+    steps_photos: int = 0
+    """Training photos up to which max_steps is the run's length: a capture with more trains
+    proportionally longer, each photo seen as often, and every schedule scaled by the run's length
+    (densification, octree levels, DNGC, learning-rate decay) follows. 0: max_steps whatever the capture."""
     batch_size: int = 1
     """Views per step on each worker; the global batch is batch_size x number of workers."""
     seed: int = 42
@@ -114,7 +120,7 @@ class TrainerConfig(InstantiateConfig):
 
     def validate(self) -> None:
         """A HicoError naming the first field out of range (run before anything is read)."""
-        for name in ("max_steps", "eval_every", "save_every", "keep_checkpoints"):
+        for name in ("max_steps", "steps_photos", "eval_every", "save_every", "keep_checkpoints"):
             if getattr(self, name) < 0:
                 raise HicoError(f"config.{name}: expected >= 0, got {getattr(self, name)}")
         for name in ("batch_size", "log_every", "max_nonfinite_steps"):
@@ -125,6 +131,14 @@ class TrainerConfig(InstantiateConfig):
             validate_part = getattr(part, "validate", None)
             if callable(validate_part):
                 validate_part()
+
+    def sized_for(self, num_photos: int) -> "TrainerConfig":
+        """This config with the run's length for ``num_photos`` training photos (``steps_photos``'s
+        rule); the result is its own fixed point, so a resumed run keeps its length."""
+        if self.steps_photos <= 0 or num_photos <= self.steps_photos:
+            return self
+        steps = math.ceil(self.max_steps * num_photos / self.steps_photos)
+        return dataclasses.replace(self, max_steps=steps, steps_photos=num_photos)
 
     def wants_viewer(self) -> bool:
         return "viewer" in self.vis or (self.vis == "auto" and sys.stdout.isatty())
@@ -226,6 +240,7 @@ class Trainer:
                 dataset = config.build_dataset(announce=False, frame=(payload or {}).get("frame"))
             if payload is not None:
                 check_frame(payload, dataset, latest)
+            self.config = config = config.sized_for(len(dataset.train_indices))
             self._check_free_space(dataset)
             if self.is_main:
                 if config.resume and latest is None:

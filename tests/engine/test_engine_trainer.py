@@ -230,3 +230,20 @@ def test_unreadable_checkpoint_and_missing_checkpoint_are_clear_errors(tmp_path)
     assert latest_checkpoint(checkpoints).name == "step-000000005.ckpt"
     with pytest.raises(HicoError, match=r"none of the 1 checkpoints is readable \(.*step-000000005.ckpt: not a readable"):
         toy_config(tmp_path, max_steps=2, resume=True).setup()
+
+
+def test_run_length_follows_the_photos_past_steps_photos(tmp_path):
+    """steps_photos: max_steps for captures up to that many training photos, proportionally more
+    beyond (each photo seen as often); the sized config is written and a resume keeps it."""
+    config = toy_config(tmp_path, max_steps=4, save_every=0)  # the toy has 9 training views
+    assert config.sized_for(9) is config
+    assert toy_config(tmp_path, max_steps=4, steps_photos=9).sized_for(9).max_steps == 4
+    sized = toy_config(tmp_path, max_steps=4, steps_photos=3).sized_for(9)
+    assert (sized.max_steps, sized.steps_photos) == (12, 9) and sized.sized_for(9) == sized
+    assert toy_config(tmp_path, max_steps=10, steps_photos=4).sized_for(9).max_steps == 23  # ceil(22.5)
+    trainer = toy_config(tmp_path, max_steps=4, steps_photos=3, save_every=0).setup()
+    assert trainer.config.max_steps == 12
+    assert trainer.train().step == 12
+    assert load_config(tmp_path / "run" / "config.yml").max_steps == 12
+    resumed = toy_config(tmp_path, max_steps=4, steps_photos=3, save_every=0, resume=True).setup()
+    assert resumed.step == 12 and resumed.config.max_steps == 12
