@@ -30,6 +30,11 @@ def _scalar(value: Any) -> float | None | bool:
     return False
 
 
+def _scalars(view: dict[str, Any]) -> dict[str, Any]:
+    """The scalar metrics of one view (images and other values dropped)."""
+    return {key: value for key, value in view.items() if _scalar(value) is not False}
+
+
 def summarize(per_view: list[dict[str, Any]]) -> dict[str, float | None]:
     """Mean and population std over views of every scalar metric: ``k`` and ``k_std``.
 
@@ -72,7 +77,8 @@ def evaluate(model: TrainableModel, dataset: TrainDataset, indices: list[int], d
             gt = {k: v.to(device) for k, v in gt.items()}
             camera = dataset.cameras[index].to(device)
             start = time.perf_counter()
-            per_view.append(model.eval_view(camera, image.to(device), gt))
+            # only the scalars outlive the view: memory does not grow with the test views
+            per_view.append(_scalars(model.eval_view(camera, image.to(device), gt)))
             wall_seconds += time.perf_counter() - start
             release_free_memory()
     finally:

@@ -24,6 +24,7 @@ the last adjustment (grown per level, pruned) are in ``field.last_densify``.
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass, field as dataclass_field
 from typing import Any, Callable
@@ -270,7 +271,9 @@ class AnchorField(nn.Module):
         else:
             moved = [sparse_rows(grad)[0] for grad in grads if grad is not None]
             if moved:
-                rows = torch.cat(moved).unique() if len(moved) > 1 else moved[0]
+                # the positions' and scalings' rows are the same rows when every drawn anchor was decoded
+                same = len(moved) == 1 or torch.equal(moved[0], moved[1])
+                rows = moved[0] if same else torch.cat(moved).unique()
                 self._chunks.expand(rows, self.anchors.detach()[rows],
                                     anchor_radii(self.log_scaling.detach()[rows]))
         self._record_chunk_state()
@@ -421,6 +424,16 @@ class AnchorField(nn.Module):
             self.log_scaling[:, 3:].clamp_(max=cfg.max_log_scale)
         return {name: (kept_rows, num_new) for name in ANCHOR_GROUPS}
 
+    @torch.no_grad()
+    def keep(self, rows: Tensor) -> dict[str, tuple[Tensor, int]]:
+        """Keep only the anchors ``rows`` [R] long (ascending), with every per-anchor parameter and
+        buffer; returns ``densify``'s {group: (kept_rows, 0)} for ``Optimizers.resize_group``."""
+        empty = GrownAnchors(self.anchors.new_zeros(0, 3), self.levels.new_zeros(0),
+                             self.anchor_features.new_zeros(0, self.anchor_features.shape[1]))
+        self._resize(rows, empty, self.drawn.new_zeros(0))
+        self._mark_synced()
+        return {name: (rows, 0) for name in ANCHOR_GROUPS}
+
     def _mark_synced(self) -> None:
         """After an adjustment every worker holds the same statistics: the next sync starts here."""
         for name in STAT_BUFFERS:
@@ -474,6 +487,18 @@ class AnchorField(nn.Module):
     def anchor_points(self) -> tuple[Tensor, Tensor]:
         """(positions [N,3], levels [N]) of all anchors, detached (viewer, export)."""
         return self.anchors.detach(), self.levels
+
+    def bytes_per_anchor(self) -> dict[str, int]:
+        """Memory each anchor holds: its parameters, their two Adam moments, its buffers (level, eps,
+        statistics) and its place in the culling chunks."""
+        def row_bytes(tensor: Tensor) -> int:
+            return math.prod(tensor.shape[1:]) * tensor.element_size()
+
+        parameters = sum(row_bytes(getattr(self, attr)) for attr in ANCHOR_GROUPS.values())
+        buffers = sum(row_bytes(getattr(self, name)) for name in ANCHOR_BUFFERS)
+        chunks = 2 * torch.empty((), dtype=torch.long).element_size()  # order and chunk_of
+        return {"parameters": parameters, "adam": 2 * parameters, "statistics": buffers, "culling": chunks,
+                "total": 3 * parameters + buffers + chunks}
 
     def stats(self) -> dict[str, float]:
         """Counters for logs: total anchors and anchors per level."""

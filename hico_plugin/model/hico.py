@@ -173,6 +173,10 @@ class HiCoModel(nn.Module):
                                         train_cameras=_subset(train_cameras, train_ids),
                                         num_train_cameras=len(train_ids), schedule_scale=scale,
                                         distances=dataset.camera_distance_range(octree.dist_ratio, octree.max_points))
+        memory = self.field.bytes_per_anchor()
+        print(f"field: {self.field.num_anchors:,} anchors at {memory['total']} bytes each (parameters "
+              f"{memory['parameters']}, Adam moments {memory['adam']}, statistics {memory['statistics']}, "
+              f"culling {memory['culling']})")
         self.renderer = config.renderer.setup()
         self.losses = Losses.setup(config.losses, schedule_scale=scale)
         self.spatial_lr_scale = float(dataset.cameras_extent())
@@ -366,7 +370,6 @@ class HiCoModel(nn.Module):
             results["normal_error_median_deg"] = None if err is None else err.median_deg
         # How CLCA's lookup fares on this view, per level; averaged over views by evaluate().
         results.update(flat_metrics(summarise(view_lookup_sums(self.field, camera))))
-        results["images"] = {"rgb": rgb, "gt": image}
         return results
 
     def run_documents(self) -> dict[str, Any]:

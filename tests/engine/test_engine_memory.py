@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import weakref
 
 import pytest
 import torch
@@ -42,6 +43,25 @@ def test_evaluate_releases_memory_before_and_after_each_view(monkeypatch):
     dataset = ToyDataConfig().setup()
     results = evaluation.evaluate(ToyModelConfig().setup(dataset), dataset, [3, 7, 11], torch.device("cpu"))
     assert results["num_views"] == 3 and len(calls) == 4
+
+
+def test_evaluate_keeps_nothing_of_a_view_but_its_scalars(monkeypatch):
+    """A view's images are dropped before the next view is rendered: memory does not grow with the
+    test views (a thousand-photo capture evaluates a hundred of them)."""
+    dataset = ToyDataConfig().setup()
+    model = ToyModelConfig().setup(dataset)
+    rendered = []
+    eval_view = model.eval_view
+
+    def tracked(camera, image, gt):
+        results = eval_view(camera, image, gt)
+        rendered.append(weakref.ref(results["rgb"]))
+        assert all(ref() is None for ref in rendered[:-1])  # the earlier views' images are gone
+        return results
+
+    monkeypatch.setattr(model, "eval_view", tracked)
+    results = evaluation.evaluate(model, dataset, [3, 7, 11], torch.device("cpu"))
+    assert len(rendered) == 3 and results["psnr"] is not None and "rgb" not in results
 
 
 # Eight 6 MiB blocks allocated, written and freed five times: page faults per round.

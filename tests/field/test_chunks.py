@@ -136,3 +136,15 @@ def test_morton_order_keeps_neighbours_together():
     chunks = field.chunks()
     extent = (chunks.high - chunks.low).norm(dim=1)
     assert float(extent.median()) < 0.25 * grid.cube_size * math.sqrt(3)
+
+
+def test_bytes_per_anchor_are_the_tensors_rows():
+    field = _district_field()
+    field.chunks()
+    memory = field.bytes_per_anchor()
+    per_anchor = [t for t in list(field.parameters()) + list(field.buffers()) if t.dim() and t.shape[0] == field.num_anchors]
+    held = sum(t.numel() * t.element_size() for t in per_anchor) / field.num_anchors
+    chunks = field.chunks()
+    held += (chunks.order.numel() + chunks.chunk_of.numel()) * 8 / field.num_anchors
+    assert memory["total"] == memory["parameters"] * 3 + memory["statistics"] + memory["culling"]
+    assert held + 2 * memory["parameters"] == memory["total"]  # Adam's two moments are not held yet
