@@ -25,7 +25,6 @@ the last adjustment (grown per level, pruned) are in ``field.last_densify``.
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass, field as dataclass_field
 from typing import Any, Callable
 
@@ -36,6 +35,7 @@ from hico_plugin.cameras import Camera, Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.field.chunks import AnchorChunks
+from hico_plugin.field.snapshot import TensorSnapshot
 from hico_plugin.field.context import ContextConfig
 from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
 from hico_plugin.field.context_graph import cell_keys
@@ -159,7 +159,8 @@ class AnchorField(nn.Module):
         self.set_schedule_scale(schedule_scale)
         self.last_densify: dict[str, int] = {}
         self._chunks: AnchorChunks | None = None
-        self._chunks_of: tuple = ()  # (weakref, version) of each tensor the chunks' bounds read
+        self._chunks_of: TensorSnapshot | None = None  # the tensors the chunks' bounds were read from
+        self._counts: tuple[TensorSnapshot | None, dict[str, float]] = (None, {})  # stats() of those tensors
         # The octree's own anchors, the base of a relative anchor budget. A resumed run rebuilds the
         # same octree from the same data before loading its checkpoint, so this stays the run's.
         self.initial_anchors = num
@@ -231,26 +232,25 @@ class AnchorField(nn.Module):
         return self.anchors, self.log_scaling, self.levels, self.extra_level
 
     def _record_chunk_state(self) -> None:
-        self._chunks_of = tuple((weakref.ref(t), t._version) for t in self._bounded_tensors())
+        self._chunks_of = TensorSnapshot(*self._bounded_tensors())
 
-    def _chunk_state_current(self) -> tuple[bool, bool]:
-        """(same anchors as the chunks group, every bounded tensor unchanged since the bounds)."""
-        if not self._chunks_of or self._chunks is None or self._chunks.order.device != self.anchors.device:
-            return False, False
-        same = [ref() is t for (ref, _), t in zip(self._chunks_of, self._bounded_tensors())]
-        unchanged = [ref() is t and version == t._version
-                     for (ref, version), t in zip(self._chunks_of, self._bounded_tensors())]
-        return same[0] and same[2], all(unchanged)
+    def _chunk_state(self) -> str:
+        """"current": the bounds hold; "moved": the same tensors, written since (the grouping holds,
+        the bounds do not); "regroup": other tensors (densification, loading another size, a device)."""
+        if self._chunks_of is None or self._chunks is None or self._chunks.order.device != self.anchors.device \
+                or not self._chunks_of.same_tensors(*self._bounded_tensors()):
+            return "regroup"
+        return "current" if self._chunks_of.unchanged(*self._bounded_tensors()) else "moved"
 
     @torch.no_grad()
     def chunks(self) -> AnchorChunks:
         """The anchors' chunks with bounds that hold for today's values: regrouped when the anchors
         changed (densification, loading), bounds recomputed when a value changed unseen by
         ``after_update``."""
-        grouped, current = self._chunk_state_current()
-        if not current:
+        state = self._chunk_state()
+        if state != "current":
             radii = anchor_radii(self.log_scaling.detach())
-            if grouped and self._chunks is not None:
+            if state == "moved":
                 self._chunks.refresh(self.anchors.detach(), self.levels, self.extra_level, radii)
             else:
                 self._chunks = AnchorChunks.build(self.anchors.detach(), self.levels, self.extra_level, radii,
@@ -262,7 +262,7 @@ class AnchorField(nn.Module):
     def after_update(self) -> None:
         """After the optimizer step: widen the chunks' bounds to the rows it moved (the rows of the
         position and scaling gradients when row-sparse; all rows otherwise)."""
-        if self._chunks is None or not self._chunk_state_current()[0]:
+        if self._chunk_state() == "regroup":
             return
         grads = [self.anchors.grad, self.log_scaling.grad]
         if any(grad is not None and not grad.is_sparse for grad in grads):
@@ -501,11 +501,15 @@ class AnchorField(nn.Module):
                 "total": 3 * parameters + buffers + chunks}
 
     def stats(self) -> dict[str, float]:
-        """Counters for logs: total anchors and anchors per level."""
-        out = {"num_anchors": float(self.num_anchors), "anchors/context_only": float((~self.drawn).sum())}
-        for level, count in enumerate(self.level_counts().tolist()):
-            out[f"anchors/level_{level}"] = float(count)
-        return out
+        """Counters for logs: total anchors and anchors per level (counted again only when the anchors
+        changed: the trainer logs them every step)."""
+        snapshot, counts = self._counts
+        if snapshot is None or not snapshot.unchanged(self.levels, self.drawn):
+            counts = {"num_anchors": float(self.num_anchors), "anchors/context_only": float((~self.drawn).sum())}
+            for level, count in enumerate(self.level_counts().tolist()):
+                counts[f"anchors/level_{level}"] = float(count)
+            self._counts = (TensorSnapshot(self.levels, self.drawn), counts)
+        return dict(counts)
 
     # ----- state ------------------------------------------------------------------------------------
 
