@@ -148,3 +148,15 @@ def test_bytes_per_anchor_are_the_tensors_rows():
     held += (chunks.order.numel() + chunks.chunk_of.numel()) * 8 / field.num_anchors
     assert memory["total"] == memory["parameters"] * 3 + memory["statistics"] + memory["culling"]
     assert held + 2 * memory["parameters"] == memory["total"]  # Adam's two moments are not held yet
+
+
+def test_counters_follow_the_anchors_without_counting_every_step():
+    field = _district_field()
+    first = field.stats()
+    assert field.stats() == first and first["num_anchors"] == field.num_anchors
+    field.keep(torch.arange(0, field.num_anchors, 2))
+    kept = field.stats()
+    assert kept["num_anchors"] == field.num_anchors
+    assert sum(v for k, v in kept.items() if k.startswith("anchors/level_")) == field.num_anchors
+    field.drawn[:5] = False  # in place, as densification hides ancestors
+    assert field.stats()["anchors/context_only"] == 5
