@@ -19,7 +19,7 @@ class DataSourceConfig(DataParserConfig):
     data: Optional[Path] = None
     """Dataset directory (format detected, or named after it: --data DIR transforms); omit it to train on the built-in --scene."""
     scene: str = "city-block"
-    """Built-in scene used when --data is not given (city-block, pagoda, room, tiny)."""
+    """Built-in scene used when --data is not given (city-block, district, pagoda, room, tiny)."""
 
     def __post_init__(self) -> None:
         self.data = Path(self.data) if self.data is not None else None

@@ -6,6 +6,7 @@ names to their config dataclasses.
 
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig, SceneEffects
 from hico_plugin.scenes.city_block import CityBlockConfig, CityBlockEffects
+from hico_plugin.scenes.district import DistrictConfig, DistrictEffects
 from hico_plugin.scenes.pagoda import PagodaConfig, PagodaEffects
 from hico_plugin.scenes.room import RoomConfig, RoomEffects
 from hico_plugin.scenes.tiny import TinyConfig, TinyEffects
@@ -17,6 +18,8 @@ __all__ = [
     "SceneEffects",
     "CityBlockConfig",
     "CityBlockEffects",
+    "DistrictConfig",
+    "DistrictEffects",
     "PagodaConfig",
     "PagodaEffects",
     "RoomConfig",

@@ -17,10 +17,11 @@ import hashlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 import numpy as np
@@ -30,13 +31,17 @@ from hico_plugin.errors import HicoError
 from hico_plugin.scenes import capture_effects as fx
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
 from hico_plugin.scenes.render import View, render_view
-from hico_plugin.scenes.sparse import SparsePoints, feature_points
+from hico_plugin.scenes.sparse import FeatureSampler, SparsePoints
 
 if TYPE_CHECKING:
     import pycolmap
 
 GENERATOR_VERSION = 1  # bump when output for the same parameters changes, to invalidate caches
 CACHE_ENV = "HICO_CACHE_DIR"
+# The generator's working buffers, in array elements: its memory is bounded by them and by one view,
+# not by the number of views.
+SURFACE_BUFFER = 1 << 18  # surface samples gathered before they are merged into the thinned set
+VISIBILITY_CHUNK = 1 << 18  # (view, point) pairs and depth pixels per chunk of the sparse points' visibility
 
 
 def cache_root() -> Path:
@@ -95,18 +100,21 @@ def generate_scene(name: str, out_dir: str | Path | None = None, **overrides: An
     interrupted run never leaves a partial dataset.
     """
     config = scene_config(name, **overrides)
+    views = f"{config.num_views} views at {config.width}x{config.height}"
     if out_dir is None:
         final = cache_root() / f"{name}-{scene_key(name, config)}"
         if (final / "scene.json").is_file():
             return final
+        _say(f"hico: rendering the built-in scene {name} ({views}), first run only; cached in {final.parent}")
     else:
         final = Path(out_dir).expanduser().resolve()
         if final.exists() and (not final.is_dir() or (any(final.iterdir()) and not (final / "scene.json").is_file())):
             raise HicoError(f"--out {final}: exists and is not a generated scene; expected an empty or new directory")
+        _say(f"hico: rendering the built-in scene {name} ({views}) into {final}")
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-", dir=final.parent))
     try:
-        write_scene(config.setup(name), tmp, key=scene_key(name, config))
+        write_scene(config.setup(name), tmp, key=scene_key(name, config), progress=view_progress(config.num_views))
         _move_into_place(tmp, final, replace=out_dir is not None)
     finally:
         if tmp.exists():
@@ -134,19 +142,39 @@ def _move_into_place(tmp: Path, final: Path, replace: bool) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def view_progress(total: int, stream=None) -> Callable[[int], None]:
+    """A reporter of views rendered: one line rewritten in place on a terminal, else a line at every
+    tenth of the views (and the last), so a log shows the generation moving without a line per view."""
+    stream = stream or sys.stderr
+    every = max(1, total // 10)
+
+    def report(done: int) -> None:
+        text = f"  rendered {done}/{total} views"
+        if stream.isatty():
+            print(f"\r{text}", end="\n" if done == total else "", file=stream, flush=True)
+        elif done % every == 0 or done == total:
+            print(text, file=stream, flush=True)
+    return report
+
+
 def image_name(index: int) -> str:
     return f"view_{index:04d}.png"
 
 
-def write_scene(scene: Scene, out: Path, key: str = "") -> dict:
-    """Render every view of ``scene`` and write the dataset into ``out``; returns the scene.json dict."""
+def write_scene(scene: Scene, out: Path, key: str = "", progress: Callable[[int], None] | None = None) -> dict:
+    """Render every view of ``scene`` and write the dataset into ``out``; returns the scene.json dict.
+    ``progress(done)`` is called after each view."""
     # The caster's matrix products are tall and skinny ([rays, 3] x [3, k]); multithreaded BLAS
     # makes them 10x slower in CPU time (and worse on a busy machine), so run single-threaded.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _write_scene(scene, out, key)
+        return _write_scene(scene, out, key, progress)
 
 
-def _write_scene(scene: Scene, out: Path, key: str) -> dict:
+def _write_scene(scene: Scene, out: Path, key: str, progress: Callable[[int], None] | None) -> dict:
     config = scene.config
     enabled = set(scene.enabled_effects)
     t_start = time.perf_counter()
@@ -155,9 +183,12 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
     num_views, H, W = len(scene.viewmats), scene.height, scene.width
     gains = fx.exposure_gains(num_views, config.seed) if "exposure" in enabled else None
     noise_rng = np.random.default_rng([config.seed, 6]) if "sensor_noise" in enabled else None
-    images = np.zeros((num_views, H, W, 3), np.uint8)
-    depths = np.zeros((num_views, H, W), np.float32)
-    surface_keys, surface_points = [], []
+    # each view goes to disk as it is rendered: memory holds one view, the sparse points' proposals and
+    # the surface samples merged so far, whatever the number of views
+    sampler = FeatureSampler(scene.viewmats, scene.K, config.sparse_points, config.sparse_noise, config.seed,
+                             min_gradient=config.min_feature_gradient, chunk_elements=VISIBILITY_CHUNK)
+    surface = _SurfaceSamples(config.surface_spacing, merge_at=SURFACE_BUFFER)
+    depth_range = [np.inf, -np.inf]
     for i, viewmat in enumerate(scene.viewmats):
         view = render_view(scene.caster, viewmat, scene.K, W, H, scene.sun, config.ambient, config.shadows)
         rgb = _pixel_colour(scene, viewmat, view, "sky" in enabled)
@@ -165,29 +196,35 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
             rgb = fx.apply_exposure(rgb, gains[i])
         if noise_rng is not None:
             rgb = fx.apply_sensor_noise(rgb, noise_rng)
-        images[i] = np.round(np.clip(rgb, 0.0, 1.0) * 255.0)
-        depths[i] = view.depth
+        image = np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
+        depth = view.depth.astype(np.float32)
         stem = Path(image_name(i)).stem
-        if not cv2.imwrite(str(out / "images" / image_name(i)), cv2.cvtColor(images[i], cv2.COLOR_RGB2BGR)):
+        if not cv2.imwrite(str(out / "images" / image_name(i)), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
             raise HicoError(f"{out / 'images' / image_name(i)}: could not write image")
-        np.save(out / "ground_truth" / "depth" / f"{stem}.npy", view.depth.astype(np.float32))
+        np.save(out / "ground_truth" / "depth" / f"{stem}.npy", depth)
         np.save(out / "ground_truth" / "normal" / f"{stem}.npy", view.normal.astype(np.float32))
+        sampler.propose(i, image, depth)
         # dense surface samples: every other pixel, thinned to one point per surface_spacing voxel
-        points = view.points[::2, ::2][view.hit[::2, ::2]]
-        keys = _voxel_keys(points, config.surface_spacing)
-        keys, first = np.unique(keys, return_index=True)
-        surface_keys.append(keys)
-        surface_points.append(points[first])
+        surface.add(view.points[::2, ::2][view.hit[::2, ::2]])
+        hit_depths = depth[depth > 0]
+        if hit_depths.size:
+            depth_range = [min(depth_range[0], float(hit_depths.min())), max(depth_range[1], float(hit_depths.max()))]
+        if progress is not None:
+            progress(i + 1)
     t_render = time.perf_counter() - t_start
 
-    keys = np.concatenate(surface_keys)
-    _, first = np.unique(keys, return_index=True)
-    surface = np.concatenate(surface_points)[first].astype(np.float32)
-    np.save(out / "ground_truth" / "surface_points.npy", surface)
+    surface_points = surface.points()
+    np.save(out / "ground_truth" / "surface_points.npy", surface_points)
 
     t_sparse = time.perf_counter()
-    sparse = feature_points(images, depths, scene.viewmats, scene.K, config.sparse_points, config.sparse_noise, config.seed,
-                            min_gradient=config.min_feature_gradient)
+
+    def depths_of(views: np.ndarray) -> np.ndarray:
+        return np.stack([np.load(out / "ground_truth" / "depth" / f"{Path(image_name(v)).stem}.npy") for v in views])
+
+    def image_of(view: int) -> np.ndarray:
+        return cv2.cvtColor(cv2.imread(str(out / "images" / image_name(view))), cv2.COLOR_BGR2RGB)
+
+    sparse = sampler.finish(depths_of, image_of)
     reconstruction = build_reconstruction(scene, sparse)
     reconstruction.write_binary(str(out / "sparse" / "0"))
     t_sparse = time.perf_counter() - t_sparse
@@ -198,7 +235,6 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
         sfm_stats = run_sfm(out, reconstruction, scene.K, config.seed)
     t_sfm = time.perf_counter() - t_sfm
 
-    hit_depths = depths[depths > 0]
     meta = {
         "scene": scene.name,
         "key": key,
@@ -221,8 +257,8 @@ def _write_scene(scene: Scene, out: Path, key: str) -> dict:
         "mean_reprojection_error_px": (
             sfm_stats["mean_reprojection_error_px"] if sfm_stats else reconstruction.compute_mean_reprojection_error()
         ),
-        "num_surface_points": len(surface),
-        "depth_range": [float(hit_depths.min()), float(hit_depths.max())] if hit_depths.size else [0.0, 0.0],
+        "num_surface_points": len(surface_points),
+        "depth_range": depth_range if np.isfinite(depth_range[0]) else [0.0, 0.0],
         "camera_distance_range": _camera_distance_range(scene),
         "exposure_gains": gains.tolist() if gains is not None else None,
         "timings_s": {
@@ -259,6 +295,36 @@ def _pixel_colour(scene: Scene, viewmat: np.ndarray, centre: View, sky: bool) ->
             total += colour(render_view(scene.caster, viewmat, K, scene.width, scene.height, scene.sun,
                                         scene.config.ambient, scene.config.shadows))
     return total / (n * n)
+
+
+class _SurfaceSamples:
+    """Surface samples thinned to one point per voxel of side ``spacing``, the first one added. The
+    views' samples are merged into the thinned set once they outnumber it (and ``merge_at``), so
+    memory holds about twice the thinned set, not every view's samples."""
+
+    def __init__(self, spacing: float, merge_at: int):
+        self.spacing, self.merge_at = spacing, merge_at
+        self.keys: list[np.ndarray] = []
+        self.samples: list[np.ndarray] = []
+        self.merged = self.pending = 0
+
+    def add(self, points: np.ndarray) -> None:
+        keys, first = np.unique(_voxel_keys(points, self.spacing), return_index=True)
+        self.keys.append(keys)
+        self.samples.append(points[first].astype(np.float32))
+        self.pending += len(keys)
+        if self.pending >= max(self.merge_at, self.merged):
+            self._merge()
+
+    def _merge(self) -> None:
+        keys, first = np.unique(np.concatenate(self.keys), return_index=True)  # first: earlier views win
+        self.keys, self.samples = [keys], [np.concatenate(self.samples)[first]]
+        self.merged, self.pending = len(keys), 0
+
+    def points(self) -> np.ndarray:
+        """float32 [M, 3], sorted by voxel."""
+        self._merge()
+        return self.samples[0]
 
 
 def _voxel_keys(points: np.ndarray, spacing: float) -> np.ndarray:

@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """World->camera 4x4 (OpenCV: x right, y down, z forward) for cameras at ``eye`` [C, 3] looking at
-    ``target`` [C, 3] with world +z up. Returns [C, 4, 4]."""
+    ``target`` [C, 3] with ``up`` ([3] or [C, 3], world +z by default; not along the view) towards the
+    image's top. Returns [C, 4, 4]."""
     forward = target - eye
     forward /= np.linalg.norm(forward, axis=-1, keepdims=True)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right = np.cross(forward, up)
     right /= np.linalg.norm(right, axis=-1, keepdims=True)
     down = np.cross(forward, right)
     rotation = np.stack([right, down, forward], axis=-2)  # rows: camera axes in world coords

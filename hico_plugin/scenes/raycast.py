@@ -42,11 +42,6 @@ class Primitive:
         signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
         return center + radius * signs
 
-    def extent(self, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Min and max [3] of the solid's coordinates along the rows of ``basis`` [3, 3]."""
-        coords = self.hull_points() @ basis.T
-        return coords.min(0), coords.max(0)
-
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
         """Entry distance ``t`` [R] (> eps, inf if missed) and a face/part index [R] int.
         origins: [R, 3] or [1, 3] (one origin for all rays)."""
@@ -317,20 +312,25 @@ class RayCaster:
         bounds = [p.bounding_sphere() for p in primitives]
         self._centers = np.array([b[0] for b in bounds], np.float64)  # [P, 3]
         self._radii = np.array([b[1] for b in bounds], np.float64) * (1 + 1e-6) + eps  # [P]
+        self._hulls = [p.hull_points() for p in primitives]  # [V, 3] each, fixed like the bounds
 
     def screen_candidates(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> list[np.ndarray]:
         """Per primitive, the flat pixel indices (row-major, [H*W]) whose rays may hit it: the pixel
         rectangle covering its bounding sphere's projection. viewmat: [4, 4] world->camera."""
         centers = self._centers @ viewmat[:3, :3].T + viewmat[:3, 3]  # [P, 3] camera frame
+        outside = _outside_frustum(centers, self._radii, K, width, height)
         everything = np.arange(width * height)
         out = []
-        for prim, (x, y, z), r in zip(self.primitives, centers, self._radii):
-            hull = prim.hull_points() @ viewmat[:3, :3].T + viewmat[:3, 3]
+        for hull, (x, y, z), r, culled in zip(self._hulls, centers, self._radii, outside):
+            if culled:  # no ray of the view can reach its bounding sphere
+                out.append(everything[:0])
+                continue
+            hull = hull @ viewmat[:3, :3].T + viewmat[:3, 3]
             if (hull[:, 2] > 1e-9).all():  # in front: the projected hull's bounding box is exact
                 u = K[0, 0] * hull[:, 0] / hull[:, 2] + K[0, 2]
                 v = K[1, 1] * hull[:, 1] / hull[:, 2] + K[1, 2]
-                u0, u1 = int(np.clip(np.floor(u.min()), 0, width)), int(np.clip(np.ceil(u.max()) + 1, 0, width))
-                v0, v1 = int(np.clip(np.floor(v.min()), 0, height)), int(np.clip(np.ceil(v.max()) + 1, 0, height))
+                u0, u1 = _clamp(np.floor(u.min()), width), _clamp(np.ceil(u.max()) + 1, width)
+                v0, v1 = _clamp(np.floor(v.min()), height), _clamp(np.ceil(v.max()) + 1, height)
                 out.append(
                     (np.arange(v0, v1)[:, None] * width + np.arange(u0, u1)[None]).ravel()
                     if u0 < u1 and v0 < v1 else everything[:0]
@@ -389,10 +389,11 @@ class RayCaster:
         order = np.argsort(coords[:, 0])
         sorted_a = coords[order, 0]
         blocked = np.zeros(len(origins), bool)
-        for prim in self.primitives:
+        for prim, hull in zip(self.primitives, self._hulls):
             if not prim.may_block(direction):
                 continue
-            lo, hi = prim.extent(basis)
+            corners = hull @ basis.T
+            lo, hi = corners.min(0), corners.max(0)
             first, last = np.searchsorted(sorted_a, [lo[0] - self.eps, hi[0] + self.eps])
             rays = order[first:last]
             b, along = coords[rays, 1], coords[rays, 2]
@@ -409,6 +410,22 @@ class RayCaster:
         for index, rays in group_by_primitive(hits.primitive):
             normals[rays], uv[rays] = self.primitives[index].surface(points[rays], hits.part[rays])
         return normals, uv
+
+
+def _clamp(value: float, size: int) -> int:
+    return int(min(max(value, 0), size))
+
+
+def _outside_frustum(centers: np.ndarray, radii: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[P] bool: the sphere (camera-frame ``centers`` [P, 3], ``radii`` [P]) lies wholly behind the
+    camera or beyond one of the four planes through its centre and the image's edges."""
+    x, y, z = centers.T
+    outside = z + radii <= 0
+    for lateral, focal, principal, size in ((x, K[0, 0], K[0, 2], width), (y, K[1, 1], K[1, 2], height)):
+        for slope, sign in ((-principal / focal, -1.0), ((size - principal) / focal, 1.0)):
+            # signed distance beyond the plane lateral = slope * z, positive outside the image
+            outside |= sign * (lateral - slope * z) / np.hypot(1.0, slope) > radii
+    return outside
 
 
 def group_by_primitive(primitive: np.ndarray):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -52,66 +53,112 @@ def visibility(points: np.ndarray, depths: np.ndarray, viewmats: np.ndarray, K: 
     return inside & (surface > 0) & (np.abs(surface - z) <= tolerance * z), uv
 
 
-def feature_points(
-    images: np.ndarray,
-    depths: np.ndarray,
-    viewmats: np.ndarray,
-    K: np.ndarray,
-    count: int,
-    position_noise: float,
-    seed: int,
-    max_track: int = 12,
-    min_gradient: float = 0.0,
-) -> SparsePoints:
-    """Sample ~``count`` points like SfM would find them.
+class FeatureSampler:
+    """Sample ~``count`` points like SfM would find them, one view at a time: ``propose`` as each view
+    is rendered, ``finish`` once all are, reading the depth maps back in chunks, so that no more than
+    one image and a chunk of depth maps are ever in memory.
 
-    images: [C, H, W, 3] uint8, depths: [C, H, W] camera z (0 = none), viewmats: [C, 4, 4].
-    Each view proposes pixels with probability proportional to image gradient magnitude (features
-    live on texture and edges, and none where the 1 px-blurred grey gradient is below ``min_gradient``
-    levels per pixel); a proposal is kept when at least one other view sees its surface
-    point unoccluded. Tracks list up to ``max_track`` observing views (the proposing view first);
-    keypoints get 0.5 px noise and positions ``position_noise`` x distance noise."""
-    rng = np.random.default_rng([seed, 5])
-    C, H, W = depths.shape
-    per_view = int(np.ceil(2.0 * count / C))
-    sources, points = [], []
-    for view in range(C):  # one proposal batch per camera
-        grey = cv2.cvtColor(images[view], cv2.COLOR_RGB2GRAY).astype(np.float32)
+    viewmats: [C, 4, 4]. Each view proposes pixels with probability proportional to image gradient
+    magnitude (features live on texture and edges, and none where the 1 px-blurred grey gradient is
+    below ``min_gradient`` levels per pixel); a proposal is kept when at least one other view sees its
+    surface point unoccluded. Tracks list up to ``max_track`` observing views (the proposing view
+    first); keypoints get 0.5 px noise and positions ``position_noise`` x distance noise."""
+
+    def __init__(self, viewmats: np.ndarray, K: np.ndarray, count: int, position_noise: float, seed: int,
+                 max_track: int = 12, min_gradient: float = 0.0, chunk_elements: int = 1 << 18):
+        self.viewmats, self.K, self.count = viewmats, K, count
+        self.position_noise, self.max_track, self.min_gradient = position_noise, max_track, min_gradient
+        # per chunk of views in finish: (view, point) pairs plus depth pixels, (view, point) draws
+        self.chunk_elements = chunk_elements
+        self.pixels = 0  # of a depth map, known from the first proposal
+        self.rng = np.random.default_rng([seed, 5])
+        self.per_view = int(np.ceil(2.0 * count / len(viewmats)))
+        self.sources: list[np.ndarray] = []
+        self.points: list[np.ndarray] = []
+
+    def propose(self, view: int, image: np.ndarray, depth: np.ndarray) -> None:
+        """Proposals of ``view`` (called in view order): image [H, W, 3] uint8, depth [H, W] camera z
+        (0 = none)."""
+        H, W = depth.shape
+        self.pixels = H * W
+        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
         strength = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)).ravel()
         blurred = cv2.GaussianBlur(grey, (0, 0), 1.0)
         # a 3x3 Sobel answers a ramp of slope s with 8 s
         contrast = np.hypot(cv2.Sobel(blurred, cv2.CV_32F, 1, 0), cv2.Sobel(blurred, cv2.CV_32F, 0, 1)).ravel() / 8
-        strength = strength * (depths[view].ravel() > 0) * (contrast >= min_gradient)
+        strength = strength * (depth.ravel() > 0) * (contrast >= self.min_gradient)
         total = strength.sum()
         if total <= 0:
-            continue
-        take = min(per_view, int((strength > 0).sum()))
-        flat = rng.choice(H * W, size=take, replace=False, p=strength / total)
-        sources.append(np.full(take, view))
-        points.append(backproject(depths[view], viewmats[view], K, np.stack([flat % W, flat // W], 1)))
-    source = np.concatenate(sources)
-    true_xyz = np.concatenate(points)
-    seen, uv = visibility(true_xyz, depths, viewmats, K)
-    seen[source, np.arange(len(source))] = True
-    keep = np.flatnonzero(seen.sum(0) >= 2)
-    if len(keep) > count:
-        keep = np.sort(rng.choice(keep, size=count, replace=False))
-    true_xyz, source, seen, uv = true_xyz[keep], source[keep], seen[:, keep], uv[:, keep]
-    src_pixels = np.floor(uv[source, np.arange(len(keep))]).astype(np.int64)
-    src_pixels = np.clip(src_pixels, 0, [W - 1, H - 1])
-    pixel_rgb = images[source, src_pixels[:, 1], src_pixels[:, 0]]
+            return
+        take = min(self.per_view, int((strength > 0).sum()))
+        flat = self.rng.choice(H * W, size=take, replace=False, p=strength / total)
+        self.sources.append(np.full(take, view))
+        self.points.append(backproject(depth, self.viewmats[view], self.K, np.stack([flat % W, flat // W], 1)))
 
-    distance = np.linalg.norm(true_xyz - _centers(viewmats)[source], axis=1)
-    xyz = true_xyz + rng.normal(0.0, 1.0, true_xyz.shape) * (position_noise * distance)[:, None]
-    priority = rng.random(seen.shape) + 2.0 * (np.arange(C)[:, None] == source[None])  # source first
-    priority = np.where(seen, priority, -1.0)
-    ranked = np.argsort(-priority, axis=0)[:max_track].T  # [N, T] best views per point
-    point = np.broadcast_to(np.arange(len(keep))[:, None], ranked.shape)
-    observed = seen[ranked, point]  # [N, T]; a point seen by fewer than T views has padding
-    obs_point, obs_image = point[observed], ranked[observed]
-    obs_pixel = uv[obs_image, obs_point] + rng.normal(0.0, 0.5, (len(obs_point), 2))
-    return SparsePoints(xyz=xyz, rgb=pixel_rgb.astype(np.uint8), obs_point=obs_point, obs_image=obs_image,
-                        obs_pixel=obs_pixel)
+    def finish(self, depths_of: Callable[[np.ndarray], np.ndarray],
+               image_of: Callable[[int], np.ndarray]) -> SparsePoints:
+        """The points, with ``depths_of(views [n])`` -> depth maps [n, H, W] and ``image_of(view)`` ->
+        image [H, W, 3] uint8 of the views already proposed from."""
+        rng, viewmats, C = self.rng, self.viewmats, len(self.viewmats)
+        source = np.concatenate(self.sources)
+        true_xyz = np.concatenate(self.points)
+        # (view, point) pairs where the view sees the point (its source always does), view-major
+        obs_view, obs_point, obs_uv = self._observations(source, true_xyz, depths_of)
+        keep = np.flatnonzero(np.bincount(obs_point, minlength=len(source)) >= 2)
+        if len(keep) > self.count:
+            keep = np.sort(rng.choice(keep, size=self.count, replace=False))
+        kept = np.isin(obs_point, keep)
+        obs_view, obs_point, obs_uv = obs_view[kept], np.searchsorted(keep, obs_point[kept]), obs_uv[kept]
+        true_xyz, source = true_xyz[keep], source[keep]
+        pixel_rgb = self._source_colours(obs_view, obs_point, obs_uv, source, image_of)
+
+        distance = np.linalg.norm(true_xyz - _centers(viewmats)[source], axis=1)
+        xyz = true_xyz + rng.normal(0.0, 1.0, true_xyz.shape) * (self.position_noise * distance)[:, None]
+        # a random priority per (view, point), the source's raised above the rest: a point's track is its
+        # max_track highest observing views; drawn a few views at a time, the numbers one [C, N] draw gives
+        priority = np.empty(len(obs_view))
+        rows = max(1, self.chunk_elements // max(1, len(keep)))
+        bounds = np.searchsorted(obs_view, np.arange(0, C + rows, rows))
+        for lo, first, last in zip(range(0, C, rows), bounds[:-1], bounds[1:]):
+            draws = rng.random((min(rows, C - lo), len(keep)))
+            priority[first:last] = draws[obs_view[first:last] - lo, obs_point[first:last]]
+        priority += 2.0 * (obs_view == source[obs_point])
+        order = np.lexsort((-priority, obs_point))  # by point, then by priority, highest first
+        starts = np.searchsorted(obs_point[order], obs_point[order], side="left")
+        order = order[np.arange(len(order)) - starts < self.max_track]
+        obs_point, obs_image = obs_point[order], obs_view[order]
+        obs_pixel = obs_uv[order] + rng.normal(0.0, 0.5, (len(obs_point), 2))
+        return SparsePoints(xyz=xyz, rgb=pixel_rgb.astype(np.uint8), obs_point=obs_point, obs_image=obs_image,
+                            obs_pixel=obs_pixel)
+
+    def _observations(self, source, true_xyz, depths_of):
+        """Views [M], points [M] and pixel coords [M, 2] of every unoccluded sighting, view-major."""
+        C = len(self.viewmats)
+        step = max(1, self.chunk_elements // (len(source) + self.pixels))
+        views, points, uvs = [], [], []
+        for lo in range(0, C, step):
+            chunk = np.arange(lo, min(C, lo + step))
+            seen, uv = visibility(true_xyz, depths_of(chunk), self.viewmats[chunk], self.K)
+            seen |= chunk[:, None] == source[None]
+            row, point = np.nonzero(seen)
+            views.append(chunk[row])
+            points.append(point)
+            uvs.append(uv[row, point])
+        return np.concatenate(views), np.concatenate(points), np.concatenate(uvs)
+
+    @staticmethod
+    def _source_colours(obs_view, obs_point, obs_uv, source, image_of) -> np.ndarray:
+        """[N, 3] each point's colour in its source view, at the pixel it projects to there."""
+        own = obs_view == source[obs_point]
+        pixels, point = obs_uv[own], obs_point[own]
+        rgb = np.zeros((len(source), 3), np.uint8)
+        for view in np.unique(source):
+            image = image_of(int(view))
+            H, W = image.shape[:2]
+            mine = source[point] == view
+            px = np.clip(np.floor(pixels[mine]).astype(np.int64), 0, [W - 1, H - 1])
+            rgb[point[mine]] = image[px[:, 1], px[:, 0]]
+        return rgb
 
 
 def _centers(viewmats: np.ndarray) -> np.ndarray:
