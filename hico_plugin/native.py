@@ -4,7 +4,8 @@ Two kinds, one build discipline:
 - a torch extension (``loader="torch"``: torch's C++ extension loader, pybind11 bindings), for a kernel
   that needs ATen -- the compositor;
 - a plain shared library of ``extern "C"`` functions on raw buffers (``loader="ctypes"``: one compiler
-  call, a second or two instead of the ~40 s that torch's headers cost), for the per-pixel kernels.
+  call, without the parse of torch's headers that makes an extension's build slow), for the per-pixel
+  kernels.
 
 The build folder is private to the package version, torch version, kernel source and build flags
 (``$HICO_KERNEL_DIR/<key>`` or ``~/.cache/hico_plugin/kernels/<key>``), so checkouts and versions never
@@ -13,7 +14,8 @@ it knows a leftover torch lock file is stale and removes it, saying so in one li
 in a child process bounded by ``BUILD_TIMEOUT_SECONDS`` (a hung compiler is killed), and the finished
 module is then loaded in-process. A build that fails, times out or cannot start within
 ``BUILD_WAIT_SECONDS`` makes the kernel unavailable with one line, and its caller uses its torch twin.
-``HICO_NO_FUSED=1`` turns every kernel off.
+The first build into a kernel folder says so once per process (``FIRST_BUILD_NOTE``), so a first run
+explains its wait. ``HICO_NO_FUSED=1`` turns every kernel off.
 """
 
 from __future__ import annotations
@@ -35,17 +37,21 @@ from typing import Any
 import torch
 
 BUILD_TIMEOUT_SECONDS = 300.0
-"""Longest a first-use build may run before it is killed and the torch twin used. The compositor's build
-takes about 40 s on an idle core; 300 s leaves room for a loaded machine while a hung compiler still
-costs a command minutes, not forever. ``$HICO_KERNEL_BUILD_TIMEOUT`` (seconds) overrides it."""
+"""Longest a first-use build may run before it is killed and the torch twin used: several times a torch
+extension's build on an idle core, room for a loaded machine, while a hung compiler still costs a
+command minutes, not forever. ``$HICO_KERNEL_BUILD_TIMEOUT`` (seconds) overrides it."""
 BUILD_WAIT_SECONDS = BUILD_TIMEOUT_SECONDS + 60.0
 """How long to wait for another process's build before using the torch twin: longer than that
 builder's own bound, so a waiter does not give up on a build that is about to finish."""
 BUILT_MARKER = "hico-built"
+"""Written into the build folder once a build finished: the name of the module file to load."""
 INCLUDE_DIR = Path(__file__).parent / "csrc"
 """Headers shared by the kernels (``#include "name.h"``); every build gets it as an include path, and
 its headers' bytes are part of every build folder's key, so a changed header never reuses a stale build."""
-"""Written into the build folder once a build finished: the name of the module file to load."""
+FIRST_BUILD_NOTE = "hico: building the CPU kernels, first run only (a minute or two); cached in {root}"
+"""Printed before the first build into a kernels folder in this process, so a first run says why it waits
+(the two torch extensions take most of that time, the plain libraries seconds)."""
+_announced_roots: set[Path] = set()
 
 # Run by the child process: torch's loader compiles (or finds up to date) and imports the module.
 _TORCH_BUILD_SCRIPT = """
@@ -58,9 +64,9 @@ print(load(verbose=False, **args).__file__)
 
 def vector_flags() -> list[str]:
     """``-mavx2`` where torch found AVX2 (or AVX-512) on this CPU, so float32 loops take 8 values at a time
-    instead of SSE2's 4 (the compositor about 1.8x faster on a 540x960 capture). torch's own detection,
-    which ``ATEN_CPU_CAPABILITY=default`` overrides, decides; the flags are part of the build folder's key,
-    so a cache shared with a machine without AVX2 keeps a separate build."""
+    instead of SSE2's 4. torch's own detection, which ``ATEN_CPU_CAPABILITY=default`` overrides, decides;
+    the flags are part of the build folder's key, so a cache shared with a machine without AVX2 keeps a
+    separate build."""
     return ["-mavx2"] if torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512") else []
 
 
@@ -144,8 +150,11 @@ class NativeKernel:
                 torch_lock.unlink(missing_ok=True)
             marker = folder / BUILT_MARKER
             if not marker.is_file():
+                if folder.parent not in _announced_roots:
+                    _announced_roots.add(folder.parent)
+                    print(FIRST_BUILD_NOTE.format(root=folder.parent), file=sys.stderr, flush=True)
                 if self.loader == "torch":
-                    print(f"building the {self.what} (first use, about 40 s)...", file=sys.stderr, flush=True)
+                    print(f"building the {self.what} (about 40 s)...", file=sys.stderr, flush=True)
                 module_file = self._build_in_child(folder)
                 tmp = marker.with_suffix(".tmp")
                 tmp.write_text(Path(module_file).name)

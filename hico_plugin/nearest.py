@@ -1,20 +1,18 @@
 """Exact k-nearest-neighbour search between point sets, with OpenCV's FLANN k-d tree.
 
-OpenCV is a dependency already; SciPy's cKDTree would add 29 MiB of resident memory to every run.
-The ``FLANN_INDEX_KDTREE_SINGLE`` index is one k-d tree searched by branch and bound; with unlimited
-checks and ``eps = 0`` it prunes a branch only when the branch cannot hold a closer point, so the search
-is exact (FLANN's ``KDTreeSingleIndex::searchLevel``: "Performs an exact search in the tree"). On 100k
-points it measured as fast as cKDTree for 3 neighbours of every point and 1.1-3.5x faster for the
-nearest of 100k other points; ``torch.cdist`` + ``topk`` is slower from 100 points up. The tree is built
-without randomness: the same input always gives the same output.
+OpenCV is a dependency already; SciPy's cKDTree would add its resident memory to every run. The
+``FLANN_INDEX_KDTREE_SINGLE`` index is one k-d tree searched by branch and bound; with unlimited checks
+and ``eps = 0`` it prunes a branch only when the branch cannot hold a closer point, so the search is
+exact (FLANN's ``KDTreeSingleIndex::searchLevel``: "Performs an exact search in the tree"), and it is at
+least as fast as cKDTree (benchmarks/RESULTS.md). The tree is built without randomness: the same input
+always gives the same output.
 
 FLANN works in float32. The points are centred on their bounding box's middle (in float64) before the
 conversion, so coordinates far from the origin (a 1e6 offset) keep float32's precision relative to the
 points' extent. The tree returns ``_MARGIN`` candidates more than asked for, re-measured in float64 and
-sorted: float32 rounding that ranks a true neighbour just past the k-th no longer loses it (without the
-margin, 14 of 300k distances of 100k clustered points differed from cKDTree's by up to 2e-8; with it
-none, for 1.0-1.5x the search time). Only more than ``_MARGIN`` points within float32 rounding of the
-k-th distance could still make it differ from a float64 search.
+sorted: float32 rounding that ranks a true neighbour just past the k-th no longer loses it. Only more
+than ``_MARGIN`` points within float32 rounding of the k-th distance could still make it differ from a
+float64 search.
 """
 
 from __future__ import annotations

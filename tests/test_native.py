@@ -27,6 +27,8 @@ def test_plain_library_builds_once_and_runs(tmp_path, monkeypatch, capsys):
     kernel = NativeKernel("hico_test_add_one", source, "test kernel", "nothing")
     lib = kernel.get()
     assert lib is not None, kernel.error
+    # a cold kernel cache says why a first run waits
+    assert capsys.readouterr().err.splitlines() == [native.FIRST_BUILD_NOTE.format(root=tmp_path / "kernels")]
     x = torch.zeros(5)
     lib.add_one(pointer(x), ctypes.c_int64(5), 2)
     assert torch.equal(x, torch.ones(5))
@@ -37,6 +39,23 @@ def test_plain_library_builds_once_and_runs(tmp_path, monkeypatch, capsys):
     assert again.get() is not None and capsys.readouterr().err == ""  # built once, nothing said
 
 
+def test_the_first_build_note_is_said_once_per_process(tmp_path, monkeypatch, capsys):
+    """Several kernels built into one cold cache: one note, before the first build; the torch
+    extensions add their own line (their build is the long one)."""
+    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.delenv("HICO_NO_FUSED", raising=False)
+    built = []
+    monkeypatch.setattr(NativeKernel, "_build_in_child", lambda self, folder: built.append(self.name) or "module.so")
+    monkeypatch.setattr(NativeKernel, "_load", lambda self, module_file: object())
+    source = tmp_path / "k.cpp"
+    source.write_text("// any\n")
+    for name, loader in (("hico_test_a", "ctypes"), ("hico_test_b", "torch"), ("hico_test_c", "ctypes")):
+        assert NativeKernel(name, source, f"kernel {name[-1]}", "nothing", loader=loader).available()
+    assert built == ["hico_test_a", "hico_test_b", "hico_test_c"]
+    assert capsys.readouterr().err.splitlines() == [native.FIRST_BUILD_NOTE.format(root=tmp_path / "kernels"),
+                                                    "building the kernel b (about 40 s)..."]
+
+
 def test_source_that_does_not_compile_is_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
     monkeypatch.delenv("HICO_NO_FUSED", raising=False)
@@ -45,7 +64,8 @@ def test_source_that_does_not_compile_is_one_line(tmp_path, monkeypatch, capsys)
     kernel = NativeKernel("hico_test_broken", source, "test kernel", "the torch twin")
     assert kernel.get() is None and not kernel.available()
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("hico: the test kernel could not be built, using the torch twin: ")
+    assert err[0] == native.FIRST_BUILD_NOTE.format(root=tmp_path / "kernels")
+    assert len(err) == 2 and err[1].startswith("hico: the test kernel could not be built, using the torch twin: ")
     assert not (kernel.build_dir() / "hico-built").exists()
 
 

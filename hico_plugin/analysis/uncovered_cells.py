@@ -35,8 +35,7 @@ CELLS_PER_SIDE = 30
 MAX_GRADIENT = 0.03
 # and its mean luminance is above this: a dark void is what the learned constant background models.
 MIN_LUMINANCE = 0.2
-# the capture needs a background model when more than this share of all cells is uncovered
-# (city-block: ~25 %).
+# the capture needs a background model when more than this share of all cells is uncovered.
 MIN_FRACTION = 0.02
 
 
@@ -61,7 +60,7 @@ def nearest_occupied(values: np.ndarray, occupied: np.ndarray) -> np.ndarray:
     """Each cell's value taken from the nearest occupied cell (Euclidean, in cells; of equidistant ones,
     the one the k-d tree finds first): values [R, C], occupied [R, C] bool, not all False -> [R, C]."""
     # An exact search: OpenCV's distanceTransformWithLabels propagates a 3x3 / 5x5 mask's approximate
-    # distance and takes a farther cell for ~0.1 % of the cells of random grids.
+    # distance and takes a farther cell for some cells.
     _, nearest = knn(np.argwhere(occupied), 1, np.argwhere(np.ones_like(occupied)))  # [R*C, 1]
     return values[occupied][nearest[:, 0]].reshape(values.shape)
 

@@ -65,10 +65,8 @@ class BenchConfig(InstantiateConfig):
     """The effects axis: each value is one --model.effects setting (e.g. "auto,environment=off"); every
     preset x scene runs once per value. A value other than "auto" names its rows "PRESET [VALUE]"."""
     budgets: tuple[int, ...] = (100, 200, 400)
-    """Training budgets in optimizer steps (checkpoints of one run when schedule is nested). The
-    default takes about 10 minutes for the 12 default runs on 2 cores (~0.08-0.12 s per step at
-    downscale 2 with the fused CPU kernels, plus evaluations); a report's ms / step column tells the
-    step time on your machine, scale the budgets by it."""
+    """Training budgets in optimizer steps (checkpoints of one run when schedule is nested). A report's
+    ms / step column tells the step time on your machine: scale the budgets by it."""
     schedule: Literal["nested", "separate"] = "nested"
     """nested: one run per (preset, scene) to the largest budget, evaluated at each budget (its
     schedules scaled to the largest budget); separate: one run per budget with its own schedule."""
@@ -121,9 +119,7 @@ BENCH_MODES: dict[str, BenchConfig] = {
     "full": BenchConfig(),
     # every effect off, each alone on, all on, and auto, on a scene that has sky and exposure (pagoda), on
     # one whose walls and ceiling no point explains (room) and on one with neither (tiny). At 1,000 steps:
-    # 200 rank how fast a setting starts, not what it models (there tiny's environment led by 0.24 dB,
-    # gone at 1,000, and one flat level beat the octree by 0.7-1.6 dB on three scenes, which at 1,000
-    # held only where the views stand at one distance).
+    # 200 rank how fast a setting starts, not what it models.
     "effects": BenchConfig(presets=("hico-gs-lite",), scenes=("pagoda", "room", "tiny"), budgets=(1000,), lpips="none",
                            effects=("environment=off,exposure=off,lod=off", "environment=on,exposure=off,lod=off",
                                     "environment=off,exposure=on,lod=off", "environment=off,exposure=off,lod=on",

@@ -19,6 +19,7 @@ from hico_plugin.cli import run_cli
 from hico_plugin.engine.stopping import EXIT_INTERRUPTED, stop_on_signals
 from hico_plugin.errors import HicoError
 from hico_plugin.viewer import RunViewerState, ViewableModel, ViewerConfig, model_render_fn
+from hico_plugin.visualization import RenderOptions
 
 
 @dataclass
@@ -70,10 +71,19 @@ def load_viewable_run(args: ViewArgs) -> tuple[Any, Any, dict[str, Any], Path | 
     return model, dataset, _eval_stats(args.load_config, getattr(config, "output_dir", None)), run.run_dir
 
 
+def render_once(render_fn: Callable[..., Any], dataset: Any, long_side: int = 64) -> None:
+    """Render one small training view before serving: a first run's one-off setup (the CPU kernels'
+    build, which says so) happens here rather than behind the page's first view."""
+    camera = dataset.cameras[0]
+    render_fn(camera.scaled(min(1.0, long_side / max(camera.width, camera.height))), RenderOptions())
+
+
 def main(args: ViewArgs) -> None:
     model, dataset, stats, run_dir = load_viewable_run(args)
     state = RunViewerState(model, dataset, stats=stats, run_dir=run_dir)
-    viewer = args.viewer.setup(render_fn=model_render_fn(model), state=state)
+    render_fn = model_render_fn(model)
+    render_once(render_fn, dataset)
+    viewer = args.viewer.setup(render_fn=render_fn, state=state)
     serve_until_signal(viewer.stop)
 
 

@@ -1,5 +1,5 @@
 """COLMAP cameras as plain data: what the loaders need of ``pycolmap.Camera``, without importing pycolmap
-(56 MiB resident) into a training run.
+(a large resident import) into a training run.
 
 ``Camera`` holds a COLMAP camera (id, model name, size, parameters in COLMAP's per-model order) and
 evaluates SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV itself, with COLMAP's formulas

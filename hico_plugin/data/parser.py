@@ -20,6 +20,7 @@ from hico_plugin.data.camera_model import Camera
 from hico_plugin.data.checks import MIN_LOADED_SIZE, check_image_sizes
 from hico_plugin.data.dataset import CameraSource, Dataset
 from hico_plugin.data.formats import DATA_FORMATS, DataFormat, SceneRecord
+from hico_plugin.data.images import MAX_LONG_SIDE, downscale_factor
 from hico_plugin.data.paths import resolve_inside
 from hico_plugin.data.splits import extrapolation_split, sparse_views
 from hico_plugin.data.transform import SceneTransform, frame_differences
@@ -58,8 +59,9 @@ class DataParserConfig(InstantiateConfig):
     downscale: int = 0
     """Load images at 1/N resolution (from <images>_N/ when it exists, else resized on load); 0 = the
     smallest power of two that brings the long side to --max-long-side."""
-    max_long_side: int = 1600
-    """Longest image side in pixels that --downscale 0 aims for (nerfstudio's default)."""
+    max_long_side: int = MAX_LONG_SIDE
+    """Longest image side in pixels that --downscale 0 aims for (nerfstudio's default; hico-process
+    extracts features at the size this loads the photos at)."""
     test_every: int = 8
     """Every Nth view (sorted by name, index % N == 0) goes to the test split; 0 = no test split. A
     layout with its own held-out views (Mega-NeRF val/) uses those instead."""
@@ -86,12 +88,10 @@ class DataParserConfig(InstantiateConfig):
     """How --orient turns the scene: "vertical", its vertical (perpendicular to the cameras' right axes,
     nerfstudio's name) to +z; "manhattan", that and its walls (the dominant vertical planes of the
     sparse points) onto x and y, so the anchor grid runs along them whatever the source's axes; "up",
-    the cameras' mean up to +z (it leans toward where they look; how runs before 2026-11-25 were turned)."""
+    the cameras' mean up to +z (it leans toward where they look; how older runs were turned)."""
     cache_mb: int = 512
-    """Budget of the in-memory cache of decoded images (LRU, in MB). 512 MB holds about 90 photos at
-    1600x1200 (the whole of most captures at their training size). A larger capture decodes the rest
-    again when drawn, about 12 ms to decode and resize a 1920x1080 JPEG against a step of several
-    hundred ms at that size, instead of holding every photo in memory."""
+    """Budget of the in-memory cache of decoded images (LRU, in MB); 512 holds about 90 photos at
+    1600x1200. A larger capture decodes the rest again when drawn, which costs little beside a step."""
     cache_dir: Optional[Path] = None
     """Where undistorted images are cached; default $XDG_CACHE_HOME/hico_plugin/datasets/<hash of DIR>
     (~/.cache/...), never inside the dataset folder."""
@@ -205,9 +205,7 @@ class DataParserConfig(InstantiateConfig):
 
     def _auto_downscale(self, record: SceneRecord, notes: list[str]) -> int:
         long_side = _long_side(record)
-        factor = 1
-        while long_side / factor > self.max_long_side:
-            factor *= 2
+        factor = downscale_factor(long_side, self.max_long_side)
         if factor > 1:
             notes.append(f"downscale: images have a {long_side} px long side; loading at 1/{factor} "
                          f"(--max-long-side {self.max_long_side}; --downscale 1 keeps full resolution)")

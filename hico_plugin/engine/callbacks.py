@@ -169,7 +169,8 @@ class ProgressLines(TrainerCallback):
     """Plain progress lines for logs (stdout not a terminal): the expected wall time of the run once
     the first steps are timed, then a line every ``every_seconds`` (and at the last step).
 
-    Step 1 is left out of the estimate: it carries one-off costs (kernel builds, caches filling)."""
+    Every estimate of the time left counts the steps after the first only: the first carries one-off
+    costs (kernel builds on a first run, caches filling)."""
 
     def __init__(self, max_steps: int, timed_steps: int = 5, every_seconds: float = 60.0,
                  stream: IO[str] | None = None, clock=time.perf_counter):
@@ -213,8 +214,13 @@ class ProgressLines(TrainerCallback):
         if now - self._last >= self.every_seconds or step + 1 == self.max_steps:
             self._last = now
             elapsed = now - self._start
-            left = elapsed / done * self._left_over(self._first_step, step + 1)
-            self._print(f"step {step + 1}/{self.max_steps}  {_duration(elapsed)} elapsed, ~{_duration(left)} left  "
+            if done == 1 and step + 1 < self.max_steps:
+                eta = "the first step, one-off setup included; the time left follows from the next steps"
+            else:
+                timed = now - self._timing_start  # the steps after the first
+                left = timed / max(done - 1, 1) * self._left_over(self._first_step + 1, step + 1)
+                eta = f"~{_duration(left)} left"
+            self._print(f"step {step + 1}/{self.max_steps}  {_duration(elapsed)} elapsed, {eta}  "
                         f"{format_bar_metrics(metrics)}")
 
     def on_eval(self, step: int, results: dict[str, Any]) -> None:

@@ -6,13 +6,11 @@ threshold with a fresh mmap and returns the top of the heap to the system once m
 threshold is free there, so each step pays the kernel's page faults (zero-filled pages) for memory it
 had a moment before. ``keep_freed_memory`` sets both thresholds for training (mallopt(3)): blocks up to
 32 MiB come from the heap, and freed heap pages stay mapped for the next step. That changes where
-blocks live, not what is computed: a process resumed at city-block's step 3,000 steps in 4 % less time
-at the same peak RSS; a whole run gains less, as glibc raises its mmap threshold itself as it goes.
+blocks live, not what is computed, and saves the page faults (benchmarks/RESULTS.md).
 
 Between phases the opposite is wanted: ``malloc_trim(0)`` returns every whole free page of every arena
 to the system (glibc >= 2.8; malloc_trim(3)); the blocks stay free for reuse, so nothing computed
-changes. On the city-block run, trimming before the final evaluation and after each of its views
-lowers that phase's peak RSS by about 40 MiB.
+changes, and the final evaluation's peak RSS is lower.
 """
 
 from __future__ import annotations

@@ -28,8 +28,7 @@ _SCALE_QUANTUM = 1 / 16
 FIXED_STEP_SHARE = 0.2
 """Share of a full-size step's time that does not shrink with the image (decoding the anchors, CLCA,
 projection, the optimizer): a step at scale s costs about FIXED_STEP_SHARE + (1 - FIXED_STEP_SHARE) s^2
-full-size steps. On instant-ngp's fox (540x960, 13k anchors) steps 2-6 took 0.21 s at half size and
-0.15 s at 5/16 of it, 0.71x for 0.39x the pixels: a share of 0.22."""
+full-size steps (the share measured on instant-ngp's fox: benchmarks/RESULTS.md)."""
 
 
 @dataclass
@@ -96,7 +95,7 @@ def _resize(images: Tensor, size: tuple[int, int], mode: str) -> Tensor:
     if mode == "area" and images.device.type == "cpu" and images.dtype == torch.float32:
         # OpenCV's INTER_AREA averages each output pixel's exact footprint (fractional weights at its
         # edges), where torch's area mode (adaptive pooling) rounds footprints out to whole pixels; and
-        # it takes 3.4 ms, not 15, to bring a 540x960 photo to 472x840 on two cores.
+        # it is several times faster.
         return torch.from_numpy(np.stack([
             cv2.resize(image.numpy(), (size[1], size[0]), interpolation=cv2.INTER_AREA).reshape(*size, -1)
             for image in images.contiguous()]))

@@ -49,7 +49,7 @@ def psnr_on_test_views(model, dataset, baked: BakedGaussians) -> dict[str, float
     sums = {"psnr_model": 0.0, "psnr_baked": 0.0, "psnr_baked_vs_model": 0.0}
     # What lies behind the Gaussians (a learned environment) is no part of the file; it is composited from
     # the model as its own renders do, so the figures measure the Gaussians (without it a sky scene's
-    # baked render scores ~9 dB on city-block whatever the Gaussians).
+    # baked render scores low whatever the Gaussians).
     behind = model.composites_behind()
     views = [int(i) for i in dataset.test_indices]
     config = model.renderer.config

@@ -84,8 +84,7 @@ class GaussianDecoder(nn.Module):
         self.mlp_opacity = _mlp(in_dim, hidden, k)
         # Children start at opacity tanh(bias) ~ 0.1 on average, the opacity 3DGS gives every new
         # Gaussian (Kerbl et al. 2023). Started around 0, a few early Adam steps can push every
-        # child below 0: then none is drawn, none gets a gradient, and the scene never comes back
-        # (pagoda, 200 steps, seed 2: 18,432 drawn Gaussians at step 0, 571 at step 7, about 10 after).
+        # child below 0: then none is drawn, none gets a gradient, and the scene never comes back.
         with torch.no_grad():
             self.mlp_opacity[-1].bias.fill_(math.atanh(INITIAL_OPACITY))
         self.mlp_cov = _mlp(in_dim, hidden, 7 * k)

@@ -50,16 +50,12 @@ class DensifyConfig(InstantiateConfig):
     keep_ancestors: bool = True
     """Keep the octree a tree for CLCA's trilinear lookup: after growing and pruning, an anchor none of
     whose candidate parents holds an anchor gets one back (a pruned one is kept, else a new anchor at
-    its nearest parent grid point, with its feature). Without it, grown and pruned anchors left 10-15 %
-    of a trained pagoda's level 1-3 anchors without parent context. Used only when CLCA is on with
-    the trilinear rule (the paper's lookup and the base method densify as published), unless
-    keep_ancestors_without_context is set."""
+    its nearest parent grid point, with its feature), so no anchor loses its parent context. Used only
+    when CLCA is on with the trilinear rule, unless keep_ancestors_without_context is set."""
     draw_ancestors: bool = False
-    """Whether the ancestors the kept tree adds (pruned anchors it revives, new anchors at parent grid
-    points) are drawn like any anchor. Off, they only lend their features to CLCA's lookup: the tree
-    is for context. Drawn, they add coarse Gaussians off the surface: on city-block at 3,000 steps
-    they lowered mesh F1 by about 0.1 and raised PSNR by about 0.4 dB (README, "What CLCA and DNGC
-    buy"). An ancestor is drawn once growth asks for an anchor in its cell."""
+    """Draw the ancestors the kept tree adds (revived and new parents) like any anchor. Off, they only
+    lend their features to CLCA's lookup; drawn, they add coarse Gaussians off the surface, trading
+    mesh quality for PSNR (benchmarks/RESULTS.md). An ancestor is drawn once growth asks for its cell."""
     max_anchors: int = 0
     """Budget of drawn anchors (0: none). Once growth would pass it, an adjustment adds only the new
     cells with the largest offset gradients, as many as fit after its pruning; pruning frees room. A
@@ -70,8 +66,8 @@ class DensifyConfig(InstantiateConfig):
     "multiplier" mode): it follows the capture's size. With max_anchors too, the smaller counts."""
     keep_ancestors_without_context: bool = False
     """Keep the tree also where no trilinear CLCA lookup reads it (context kind none, or the paper's
-    lookup): the anchors the tree adds, without the context. This is the control that tells the two
-    apart in CLCA's ablation (README, "What CLCA and DNGC buy")."""
+    lookup): the anchors the tree adds, without the context; the control that tells the two apart in
+    CLCA's ablation."""
 
     def budget(self, initial_anchors: int) -> int | None:
         """The drawn-anchor budget of a field that started with ``initial_anchors``; None: unbounded."""

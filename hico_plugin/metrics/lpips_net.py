@@ -170,8 +170,8 @@ def _layers(net: str) -> list[tuple]:
 # 128 channels at full and half size) are the network's largest. Alex's stride-4 first conv leaves none
 # that large.
 _BANDED_LAYERS = {"alex": 0, "vgg": 8}
-# Elements of the largest activation of one row band (8 MB of float32). At 320x240 a pair's first block
-# is 39 MB; in bands of 32 MB, LPIPS held up to 80 MiB more than the render before it, for no gain in speed.
+# Elements of the largest activation of one row band (8 MB of float32): larger bands raise LPIPS's peak
+# above the render's before it, for no gain in speed.
 BAND_ELEMENTS = 2 * 2**20
 
 

@@ -86,10 +86,9 @@ class HiCoModelConfig(InstantiateConfig):
     "auto,environment=off" or "environment=on,exposure=off,lod=on"."""
     lod_rule: Literal["octree", "measured"] = "octree"
     """When ``auto`` turns the lod effect on. "octree": whenever the points' distance span gives two levels
-    or more (Octree-GS; the paper's presets). "measured": only where the views themselves stand at
-    different distances and the run has 1,000 steps or more, the settings where levels scored a higher
-    test PSNR than one flat level (hico-gs-lite; the figures are beside LOD_MIN_STEPS; the mesh can
-    disagree: the room's levels mesh better)."""
+    or more (Octree-GS; the paper's presets). "measured": only where the views stand at different
+    distances and the run has 1,000 steps or more, where levels beat one flat level on test PSNR
+    (hico-gs-lite; figures in benchmarks/RESULTS.md)."""
     environment: EnvironmentConfig = dataclass_field(default_factory=EnvironmentConfig)
     """Learned directional background composited behind the Gaussians (when the environment effect is on)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -97,19 +96,13 @@ class HiCoModelConfig(InstantiateConfig):
     unless background_start takes it from the data)."""
     background_start: Literal["data", "configured"] = "data"
     """Where the learned constant starts. "data": the median colour of the photo cells no reconstructed
-    point explains (the environment finding's sky or plain walls) where the analysis finds them, else
-    ``background``; "configured": ``background``. A fresh decoder gives every Gaussian the same colour and
-    opacity, so over a constant far from the photos' own backdrop the loss pulls every opacity down
-    together and can fade the whole model out: pagoda, environment off, 200 steps, seeds 1 / 2 end at
-    13.12 / 13.12 dB (colour-corrected) from black and 21.68 / 21.56 from its sky's colour; the room with
-    every effect off 26.04 / 26.00 from black and 26.26 / 26.24 from its walls' colour. Tiny's backdrop
-    is a dark void the analysis does not count, so it starts black."""
+    point explains (sky or plain walls) where the analysis finds them, else ``background``;
+    "configured": ``background``. Over a constant far from the photos' backdrop the fresh, identical
+    Gaussians are pulled transparent together and the model can fade out."""
     learn_background: bool = True
     """Learn that colour (parameter group "background"): with the environment off, the best constant
-    behind the Gaussians, not black. Splatfacto trains over a random colour instead so that the
-    Gaussians cannot lean on it (nerfstudio's splatfacto.py, _get_background_color); a learned
-    constant also fits a plain backdrop the Gaussians do not reach (the room, environment off, 300
-    steps: colour-corrected PSNR 28.19 dB against 22.30 over black)."""
+    behind the Gaussians, which also fits a plain backdrop they do not reach. Splatfacto trains over a
+    random colour instead so the Gaussians cannot lean on it (nerfstudio's splatfacto.py)."""
     scale_schedules: bool = True
     """Scale the step-valued schedules (the field's densification and levels, DNGC's t0 and T) by
     max_steps / field.reference_steps, so a short run keeps the paper's proportions."""

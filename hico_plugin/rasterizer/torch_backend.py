@@ -17,11 +17,9 @@ from hico_plugin.rasterizer.projection_fused import (
 from hico_plugin.rasterizer.tiling import TileBins, bin_gaussians
 
 # The vectorised torch compositor evaluates every pixel of a tile against every Gaussian binned to
-# it, so small tiles waste fewer pairs on the few-pixel Gaussians of real renders (fwd+bwd of
-# trained city-block views at 320x240, 1 thread: tile 16 1.34 s, 8 0.54 s, 4 0.35 s). The fused CPU
+# it, so small tiles waste fewer pairs on the few-pixel Gaussians of real renders. The fused CPU
 # compositor rejects a far pair before its exp and stops each pixel early, so tile size barely
-# matters to it (train steps 232 / 228 / 223 ms at 16 / 8 / 4) and the common 16 keeps the fewest
-# intersections.
+# matters to it and the common 16 keeps the fewest intersections (timings: benchmarks/RESULTS.md).
 TORCH_COMPOSITOR_TILE_SIZE = 4
 
 

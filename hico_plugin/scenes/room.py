@@ -38,8 +38,7 @@ class RoomConfig(SceneConfig):
     """No cast shadows: the light is the room's own diffuse light, and the sun would be blocked by the ceiling."""
     surface_spacing: float = 0.05
     min_feature_gradient: float = 8.0
-    """The smooth paper and the ceiling stay point-free, as SfM leaves them (at 4, 0.7 % of a 128x96
-    twin's points fell on the ceiling's mottle; at 8, under 0.2 %)."""
+    """High enough that the smooth paper and the ceiling stay point-free, as SfM leaves them."""
     effects: RoomEffects = field(default_factory=RoomEffects)
     size: tuple[float, float, float] = (6.0, 5.0, 2.8)
     """Inner width (x), depth (y) and height (z) of the room in metres."""

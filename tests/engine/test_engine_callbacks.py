@@ -72,6 +72,31 @@ def test_progress_lines_print_the_expected_wall_time_from_the_first_steps():
     assert "over steps 2-6, images at 0.50 of full size, later steps weighed by their pixels;" in coarse.getvalue()
 
 
+def test_a_slow_first_step_does_not_inflate_the_time_left():
+    """A first run's first step holds the kernel builds (here 111 s against 0.125 s steps): the line it
+    prints makes no estimate, and the next ones count the steps after it only."""
+    import io
+
+    from hico_plugin.engine.callbacks import ProgressLines
+
+    now = [0.0]
+    out = io.StringIO()
+    lines = ProgressLines(max_steps=3500, timed_steps=5, every_seconds=60.0, stream=out, clock=lambda: now[0])
+    lines.on_train_start(None, 0)
+    now[0] = 111.0
+    lines.on_step_end(0, {"loss": 0.5})
+    for step in range(1, 3500):
+        now[0] += 0.125
+        lines.on_step_end(step, {"loss": 0.5})
+    printed = out.getvalue().splitlines()
+    first = next(line for line in printed if line.startswith("step 1/3500"))
+    assert "1:51 elapsed, the first step, one-off setup included" in first and "~" not in first
+    # 60 s after the first step: step 481, 3,019 steps of 0.125 s left
+    assert any(line.startswith("step 481/3500  2:51 elapsed, ~6:17 left") for line in printed), printed
+    assert "expected wall time 9:08 (0.12 s/step over steps 2-6;" in "\n".join(printed)
+    assert printed[-1].startswith("step 3500/3500  9:08 elapsed, ~0:00 left")
+
+
 def test_under_the_resolution_schedule_the_time_left_is_counted_in_full_steps():
     """A step whose time is a fixed part plus a part that follows its pixels (4 s at full size) is
     foreseen exactly from the first, quarter-size steps."""

@@ -168,18 +168,33 @@ def test_multi_distance_spreads_camera_distances():
     assert spread(near_far) > 2.5 and spread(single) < 1.3
 
 
-def test_cache_hit_and_key(tmp_path, monkeypatch):
+def test_cache_hit_and_key(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     first = generate_scene("tiny", num_views=3)
     assert first.parent == tmp_path and (first / "scene.json").is_file()
+    # a cold cache says what the wait is, with the views as they are rendered
+    assert capsys.readouterr().err.splitlines() == [
+        f"hico: rendering the built-in scene tiny (3 views at 64x48), first run only; cached in {tmp_path}",
+        "  rendered 1/3 views", "  rendered 2/3 views", "  rendered 3/3 views"]
 
     def no_render(*args, **kwargs):
         raise AssertionError("cache miss")
 
     monkeypatch.setattr(gen, "write_scene", no_render)
     assert generate_scene("tiny", num_views=3) == first
+    assert capsys.readouterr().err == ""  # a cached scene is silent
     with pytest.raises(AssertionError, match="cache miss"):
         generate_scene("tiny", num_views=4)  # other parameters, other cache entry
+
+
+def test_view_progress_in_a_log_is_a_line_every_tenth_of_the_views():
+    import io
+
+    log = io.StringIO()
+    report = gen.view_progress(72, log)
+    for done in range(1, 73):
+        report(done)
+    assert log.getvalue().splitlines() == [f"  rendered {done}/72 views" for done in (*range(7, 71, 7), 72)]
 
 
 def test_a_crash_leaves_no_partial_scene(tmp_path, monkeypatch):
@@ -218,6 +233,8 @@ def test_cli_generates_and_reports(tmp_path, capsys):
     assert out == tmp_path / "cli" and "views      4 x 64x48" in printed and "declared: (none)" in printed
     main(["tiny", "--out", str(tmp_path / "cli"), "--num-views", "5"])  # regenerating replaces it
     assert len(list((tmp_path / "cli" / "images").iterdir())) == 5
+    said = capsys.readouterr().err.splitlines()
+    assert said[0] == f"hico: rendering the built-in scene tiny (5 views at 64x48) into {tmp_path / 'cli'}"
     import sys
 
     argv = sys.argv

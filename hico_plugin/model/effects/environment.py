@@ -1,15 +1,12 @@
 """A learned environment: colour as a function of the world ray direction, composited behind the Gaussians.
 
 Anchors grow from the sparse points, so where no reconstructed point explains part of the photos
-(``analysis.uncovered_cells``) the render shows what lies behind the Gaussians: open sky outdoors (30 %
-of the built-in city-block's pixels), plain walls and ceilings SfM found no features on indoors. A
-constant background cannot match a gradient sky or a lit wall, and Gaussians pushed there to fake it
-become floaters. A small MLP on the unit ray direction needs no up axis (COLMAP frames have none) and
-stays smooth: ``rgb = rgb_gaussians + (1 - alpha) * environment(direction)``. It is exact for a distant
-background and an approximation for near surfaces that still pays: on instant-ngp's fox (rose paper
-behind the head, 16 % of the photos uncovered) the colour-corrected test PSNR was 28.01 dB with it
-against 26.04 dB over constant black; on the built-in room (32 views at 160x120, 300 steps, seed 42)
-29.02 dB with it, 28.19 over the learned constant background that replaces it when off, 22.30 over black.
+(``analysis.uncovered_cells``) the render shows what lies behind the Gaussians: open sky outdoors, plain
+walls and ceilings SfM found no features on indoors. A constant background cannot match a gradient sky
+or a lit wall, and Gaussians pushed there to fake it become floaters. A small MLP on the unit ray
+direction needs no up axis (COLMAP frames have none) and stays smooth:
+``rgb = rgb_gaussians + (1 - alpha) * environment(direction)``. It is exact for a distant background and
+an approximation for near surfaces that still pays (benchmarks/RESULTS.md, "Figures behind the defaults").
 """
 
 from __future__ import annotations
@@ -38,10 +35,8 @@ class EnvironmentConfig(InstantiateConfig):
     """Hidden width of the direction MLP."""
     stride: int = 4
     """The MLP runs at every stride-th pixel (a camera with 1/stride the resolution) and the image
-    takes its bilinear interpolation; 1: every pixel. A background far behind the scene changes
-    slowly with the direction, while per pixel the MLP's forward and backward cost more than all the
-    decoder's MLPs (a quarter of a 320x240 training step, 120 ms of a 540x960 one on 2 cores); at
-    stride 4 they cost a sixteenth of that."""
+    takes its bilinear interpolation; 1: every pixel. A background far behind the scene changes slowly
+    with the direction, and per pixel this MLP costs more than all the decoder's MLPs together."""
 
     def setup(self, **kwargs) -> "EnvironmentModel":
         return EnvironmentModel(self)

@@ -10,14 +10,9 @@ from hico_plugin.analysis.view_distances import lod_finding
 from hico_plugin.model.effects.base import EFFECTS, Effect, EffectChoice
 
 
-# The measured rule (--model.lod-rule measured). Each level's anchors train on the views at its distance
-# only, so levels split a run's steps between them. Colour-corrected PSNR, one flat level against the
-# octree's levels, hico-gs-lite, downscale 2, seeds 0-2 unless noted:
-# - 200 steps: one level higher on pagoda (+1.62 dB), room (+0.82) and city-block (+0.68, seeds 0-1);
-# - 1,000 steps: one level higher on room (34.73 +- 0.54 against 33.74 +- 0.27) and tiny (24.31 +- 0.09
-#   against 23.84 +- 0.05), whose views stand at one distance (median distances 1.15x and 1.13x apart);
-#   a tie on pagoda (30.05 +- 0.08, 29.87 +- 0.22; views 1.79x apart);
-# - city-block, views 3.21x apart: levels higher by 0.95 dB at 1,500 steps (seeds 0-1) and 0.75 at 3,000.
+# The measured rule (--model.lod-rule measured): each level's anchors train on the views at its distance
+# only, so levels split a run's steps between them and pay only on views at several distances and runs
+# this long (the comparison: benchmarks/RESULTS.md, "Figures behind the defaults").
 LOD_MIN_STEPS = 1_000
 
 
