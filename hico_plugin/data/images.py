@@ -16,6 +16,20 @@ from hico_plugin.errors import HicoError
 _JPEG_END = b"\xff\xd9"
 _PNG_END = b"IEND\xaeB`\x82"
 
+MAX_LONG_SIDE = 1600
+"""Longest image side, in pixels, training loads a photo at by default (nerfstudio's): a larger photo
+is loaded at the smallest power-of-two downscale that fits (``downscale_factor``). SIFT reads photos at
+that size too, in hico-process and in seed triangulation: finer features than a training pixel do not
+help that training, and SIFT's time grows with the pixels."""
+
+
+def downscale_factor(long_side: int, max_long_side: int = MAX_LONG_SIDE) -> int:
+    """The smallest power of two that brings ``long_side`` to ``max_long_side`` or below."""
+    factor = 1
+    while long_side / factor > max_long_side:
+        factor *= 2
+    return factor
+
 
 def read_file_bytes(path: Path, what: str) -> np.ndarray:
     try:

@@ -24,6 +24,7 @@ import numpy as np
 
 from hico_plugin.data.camera_model import Camera, camera_centres
 from hico_plugin.data.checks import image_header_size
+from hico_plugin.data.images import MAX_LONG_SIDE
 
 if TYPE_CHECKING:
     import pycolmap
@@ -44,7 +45,7 @@ pairs within 45 degrees, 139 within 90 and 147 from every pair."""
 PAIR_BLOCK = 256
 """Images whose distances to every other are held at once while choosing pairs."""
 MAX_FEATURES = 4096
-MAX_IMAGE_SIZE = 1600
+MAX_IMAGE_SIZE = MAX_LONG_SIDE
 """Longest side, in pixels, SIFT reads a photo at. Below it, photos are read at the size training loads
 them: features finer than a training pixel do not place a seed point better for that training, and
 SIFT's time grows with the pixels (instant-ngp's fox, 50 photos of 1920x1080 trained at 960x540: 30 s

@@ -13,7 +13,7 @@ import tyro
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.process.ingest import ingest_photos
-from hico_plugin.process.sfm import SfmOptions, list_images, print_summary, run_sfm
+from hico_plugin.process.sfm import SfmOptions, check_options, list_images, print_summary, run_sfm
 from hico_plugin.process.stages import StageRunner, stage_key, write_json_atomic
 from hico_plugin.process.video import extract_frames
 
@@ -39,6 +39,7 @@ class ProcessImagesConfig(InstantiateConfig):
     sfm: SfmOptions = field(default_factory=SfmOptions)
 
     def setup(self, **kwargs: Any) -> dict[str, Any]:
+        check_options(self.sfm)
         source = self.input.expanduser().resolve()
         if not source.is_dir():
             raise HicoError(f"{self.input}: folder of photos not found")
@@ -50,7 +51,7 @@ class ProcessImagesConfig(InstantiateConfig):
         input_dir = out / "colmap" / "input"
         files = [(name, (source / name).stat().st_size, (source / name).stat().st_mtime_ns) for name in names]
         ingested = runner.run("ingest", stage_key(files), lambda report: ingest_photos(
-            source, names, input_dir, input_dir.parent / "masks", report))
+            source, names, input_dir, input_dir.parent / "masks", report), unit="photos", describe=_describe_ingest)
         skipped = ingested["skipped"]
         for name, reason in sorted(skipped.items()):
             print(f"skipped  {name}: {reason}", file=sys.stderr)
@@ -64,7 +65,8 @@ class ProcessImagesConfig(InstantiateConfig):
 
 @dataclass
 class ProcessVideoConfig(InstantiateConfig):
-    """A video -> sharp frames sampled over its length -> a COLMAP dataset (sequential matching)."""
+    """A video -> sharp frames sampled over its length -> a COLMAP dataset (frames in time order: sequential
+    matching when there are more than --exhaustive-max)."""
 
     input: tyro.conf.Positional[Path]
     """Video file (anything OpenCV's FFmpeg reads: .mp4, .mov, .avi...)."""
@@ -72,9 +74,10 @@ class ProcessVideoConfig(InstantiateConfig):
     """Dataset folder to write."""
     num_frames: int = 300
     """Frames to keep: the video is cut into this many windows and the sharpest frame of each is kept."""
-    sfm: SfmOptions = field(default_factory=lambda: SfmOptions(matcher="sequential"))
+    sfm: SfmOptions = field(default_factory=SfmOptions)
 
     def setup(self, **kwargs: Any) -> dict[str, Any]:
+        check_options(self.sfm)
         video = self.input.expanduser().resolve()
         out = _check_output(self.output, video)
         runner = StageRunner(out)
@@ -87,11 +90,17 @@ class ProcessVideoConfig(InstantiateConfig):
                 shutil.rmtree(input_dir)
             return extract_frames(video, input_dir, self.num_frames, report)
 
-        frame_summary = runner.run("frames", key, frames)
+        frame_summary = runner.run("frames", key, frames, unit="windows",
+                                   describe=lambda done: f"{done['kept_frames']} of {done['video_frames']} frames kept")
         names = list_images(input_dir)
-        summary = run_sfm(input_dir, names, out, self.sfm, runner, key)
+        summary = run_sfm(input_dir, names, out, self.sfm, runner, key, ordered=True)
         summary.update(frame_summary)
         return _finish(summary, out, runner)
+
+
+def _describe_ingest(summary: dict[str, Any]) -> str:
+    return (f"{len(summary['kept'])} photos kept, {len(summary['skipped'])} skipped, "
+            f"{len(summary['rewritten'])} normalised")
 
 
 def _finish(summary: dict[str, Any], out: Path, runner: StageRunner) -> dict[str, Any]:

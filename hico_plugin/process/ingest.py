@@ -5,7 +5,8 @@ downloads mix grayscale, 16-bit and transparent PNGs, CMYK JPEGs, empty, truncat
 Each photo is normalised once on the way in: turned upright (the tag applied, then cleared), converted
 to 8-bit RGB, its transparency kept as a mask (white = scene) — and copied byte for byte when it needs
 none of that. A file that is not a readable image is skipped with the reason, and the rest go on.
-The other EXIF tags (make, model, focal length) are kept: SfM starts from the focal length they give.
+The other EXIF tags (make, model, focal length, GPS position) are kept: SfM starts from the focal length
+they give, and photos with a GPS position are matched with their nearest (matching.py).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from hico_plugin.process.stages import Report
 ORIENTATION_TAG = 0x0112
 MAKE_TAG, MODEL_TAG = 0x010F, 0x0110
 EXIF_IFD, FOCAL_LENGTH_TAG = 0x8769, 0x920A
+GPS_IFD = 0x8825
+GPS_LAT_REF, GPS_LAT, GPS_LON_REF, GPS_LON, GPS_ALT_REF, GPS_ALT = 1, 2, 3, 4, 5, 6  # tags of the GPS IFD
 _ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
 
 
@@ -35,6 +38,8 @@ class PhotoInfo:
     make: str
     model: str
     focal_mm: float | None
+    gps: tuple[float, float, float] | None = None
+    """(latitude, longitude in degrees, north and east positive; altitude in metres) from the GPS IFD."""
 
     def camera_key(self) -> tuple[Any, ...]:
         """Photos with equal keys come from one camera (COLMAP intrinsics are per size and lens)."""
@@ -56,7 +61,24 @@ def photo_info(path: Path) -> PhotoInfo:
         except (TypeError, ValueError, ZeroDivisionError):
             focal_mm = None
         return PhotoInfo(image.width, image.height, str(exif.get(MAKE_TAG, "")).strip("\x00 "),
-                         str(exif.get(MODEL_TAG, "")).strip("\x00 "), focal_mm)
+                         str(exif.get(MODEL_TAG, "")).strip("\x00 "), focal_mm, _gps(exif.get_ifd(GPS_IFD)))
+
+
+def _gps(ifd: dict) -> tuple[float, float, float] | None:
+    """The position an EXIF GPS IFD holds (degrees, minutes, seconds and N/S, E/W references; altitude
+    0 when absent, negative with reference 1, below sea level), or None without one. A fix at exactly
+    0, 0 is a camera's placeholder, not a place (COLMAP's spatial matcher skips it too)."""
+    try:
+        lat, lon = (sum(float(part) / 60**i for i, part in enumerate(ifd[tag])) for tag in (GPS_LAT, GPS_LON))
+        alt = float(ifd.get(GPS_ALT, 0.0))
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        return None
+    lat = -lat if str(ifd.get(GPS_LAT_REF, "N")).upper().startswith("S") else lat
+    lon = -lon if str(ifd.get(GPS_LON_REF, "E")).upper().startswith("W") else lon
+    alt = -alt if ifd.get(GPS_ALT_REF) in (1, b"\x01") else alt
+    if not (np.isfinite([lat, lon, alt]).all() and abs(lat) <= 90 and abs(lon) <= 180) or lat == lon == 0:
+        return None
+    return lat, lon, alt
 
 
 def _why_unusable(path: Path) -> str | None:

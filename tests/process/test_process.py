@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import cv2
@@ -15,20 +16,28 @@ from hico_plugin.data import images as image_io
 from hico_plugin.data.sources import DataSourceConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.process.align import aligned_errors, umeyama
+from hico_plugin.process.ingest import photo_info
+from hico_plugin.process.matching import _resume_or_clear
 from hico_plugin.process.video import extract_frames, sharpness
 from hico_plugin.scenes.generate import generate_scene
+from hico_plugin.scenes.geotagged import write_geotagged_photos
 
 FAST = ["--max-features", "2048", "--num-threads", "2", "--camera-model", "SIMPLE_RADIAL", "--downscales", "2"]
 
 
 @pytest.fixture(scope="module")
-def photos(tmp_path_factory):
-    """City-block's 72 aerial views at 320x240, images only; returns (folder, {name: known centre},
-    camera spread = mean distance of the known centres from their mean). Tiny's repeating checkers fold
-    its ring and fewer city-block views (30) register only two images: this is the smallest built-in
-    set measured to register fully (72 of 72, camera centres within 0.8 % of the spread)."""
-    root = tmp_path_factory.mktemp("scene")
-    scene = generate_scene("city-block", root / "scene")
+def scene(tmp_path_factory):
+    """City-block's 72 aerial views at 320x240 (view i on ring i % 3). Tiny's repeating checkers fold its
+    ring and fewer city-block views (30) register only two images: this is the smallest built-in set
+    measured to register fully (72 of 72, camera centres within 0.8 % of the spread)."""
+    return generate_scene("city-block", tmp_path_factory.mktemp("scene") / "scene")
+
+
+@pytest.fixture(scope="module")
+def photos(scene):
+    """The scene's photos only; returns (folder, {name: known centre}, camera spread = mean distance of
+    the known centres from their mean)."""
+    root = scene.parent
     known = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
     centres = {image.name: image.projection_center() for image in known.images.values()}
     shutil.copytree(scene / "images", root / "photos")
@@ -92,6 +101,53 @@ def test_images_register_write_the_dataset_and_resume(photos, tmp_path):
         assert np.array_equal(resampled_model.images[image.image_id].cam_from_world().matrix(),
                               image.cam_from_world().matrix())
         assert (resampled / "images" / image.name).read_bytes() != (folder / image.name).read_bytes()
+
+
+def test_photos_with_gps_are_matched_with_their_nearest_and_a_rerun_reuses_every_stage(scene, tmp_path):
+    """12 neighbouring views of the inner ring as a drone's JPEGs with GPS in their EXIF: above
+    --exhaustive-max, auto matches each with its --neighbors nearest by position (COLMAP's spatial
+    pairing, horizontal distance), COLMAP reads the positions the photos carry, and the cameras are
+    recovered."""
+    tagged = write_geotagged_photos(scene, tmp_path / "tagged")
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    ring = sorted(tagged)[::3][:12]
+    for name in ring:
+        (tmp_path / "tagged" / name).rename(folder / name)
+    out = tmp_path / "out"
+    args = ["images", str(folder), "--output", str(out), *FAST, "--exhaustive-max", "8", "--neighbors", "6"]
+    summary = process_main(args)
+    assert summary["matcher"] == "spatial" and summary["mapper"] == "incremental"
+    centres = np.array([tagged[name] for name in ring])
+    distance = np.linalg.norm(centres[:, None, :2] - centres[None, :, :2], axis=-1)
+    nearest = np.argsort(distance, axis=1)[:, 1:7]
+    allowed = {frozenset((ring[i], ring[j])) for i in range(12) for j in nearest[i]}
+    with pycolmap.Database.open(out / "colmap" / "database.db") as db:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        matched = {frozenset(names[i] for i in pycolmap.pair_id_to_image_pair(pair))
+                   for pair in db.read_all_matches()[0]}
+        priors = {names[prior.corr_data_id.id]: prior.position for prior in db.read_all_pose_priors()}
+        assert summary["pairs"] == db.num_matched_image_pairs() < 12 * 11 // 2 and matched <= allowed
+    for name in ring:  # what COLMAP read is what the photo carries (COLMAP keeps the altitude in float32)
+        assert np.allclose(priors[name], photo_info(folder / name).gps, rtol=0, atol=[1e-7, 1e-7, 1e-3]), name
+    recovered = _centres(out)
+    assert summary["registered"] == len(recovered) >= 11
+    errors = _centre_errors(recovered, tagged, float(np.linalg.norm(centres - centres.mean(0), axis=1).mean()))
+    assert np.median(errors) < 0.01 and errors.max() < 0.03, errors
+    again = process_main(args)
+    assert set(again["reused_stages"]) == {"ingest", "features", "matching", "mapping", "undistort", "downscale"}
+    # Another matching option redoes matching on the features extracted; a stopped matching stage with
+    # the same options keeps the pairs it matched, and one with other options starts afresh.
+    fewer = process_main([*args[:-1], "4"])
+    assert set(fewer["reused_stages"]) == {"ingest", "features"} and fewer["pairs"] < summary["pairs"]
+    state, database = out / "colmap" / "matching.json", out / "colmap" / "database.db"
+    key = json.loads(state.read_text())["key"]
+    assert _resume_or_clear(state, key, database)
+    with pycolmap.Database.open(database) as db:
+        assert db.num_matched_image_pairs() == fewer["pairs"]
+    assert not _resume_or_clear(state, "other options", database)
+    with pycolmap.Database.open(database) as db:
+        assert db.num_matched_image_pairs() == 0
 
 
 def _exif(orientation: int = 1, make: str = "", model: str = "") -> bytes:
