@@ -31,6 +31,9 @@ class DistrictEffects(SceneEffects):
     city-block: test views' unknown gains would otherwise cap every method's PSNR."""
     sky: bool = True
     """Gradient sky instead of black where rays miss the scene (the street views look up past the roofs)."""
+    multi_distance: bool = True
+    """Street-level passes beside the drone's grid (views from a few metres to the flight height, as
+    Mill19's mixed captures); off: the drone's nadir and oblique grid alone."""
 
 
 @SCENES.register("district")
@@ -131,7 +134,7 @@ class DistrictConfig(SceneConfig):
         the drone's first, in flight order, then the street passes."""
         self._check()
         rng = np.random.default_rng([self.seed, 7])
-        street = int(round(self.street_share * self.num_views))
+        street = int(round(self.street_share * self.num_views)) if self.effects.multi_distance else 0
         kinds, aerial = self._aerial(self.num_views - street, rng)
         return kinds + ["street"] * street, np.concatenate([aerial, self._street(street, rng)])
 

@@ -65,6 +65,8 @@ def test_views_are_nadir_oblique_and_street():
     assert sum(default.values()) == config.num_views
     assert default["street"] == round(config.street_share * config.num_views)
     assert default["oblique"] == 4 * default["nadir"]
+    drone_only = _check_kinds(scene_config("district", **SMALL, effects={"multi_distance": False}))
+    assert drone_only == {"oblique": 24, "nadir": 6}
 
 
 def _built_area(config):
@@ -83,7 +85,8 @@ def test_every_view_sees_surface_and_the_split_holds_every_kind(district):
     depths = np.stack([np.load(path / "ground_truth" / "depth" / f"view_{i:04d}.npy") for i in range(30)])
     assert ((depths > 0).mean((1, 2)) > 0.3).all()  # every camera sees surface, not just sky
     meta = json.loads((path / "scene.json").read_text())
-    assert meta["declared_effects"] == ["exposure", "sky"] and meta["enabled_effects"] == ["sky"]
+    assert meta["declared_effects"] == ["exposure", "sky", "multi_distance"]
+    assert meta["enabled_effects"] == ["sky", "multi_distance"]
     dataset = DataParserConfig(data=path).parse(announce=False)
     kinds = np.array(config.view_kinds())
     assert set(kinds[np.asarray(dataset.test_indices)]) == {"nadir", "oblique", "street"}
