@@ -1,21 +1,10 @@
 """This package's compiled CPU kernels: C++ sources built with the system compiler on first use.
 
-Two kinds, one build discipline:
-- a torch extension (``loader="torch"``: torch's C++ extension loader, pybind11 bindings), for a kernel
-  that needs ATen -- the compositor;
-- a plain shared library of ``extern "C"`` functions on raw buffers (``loader="ctypes"``: one compiler
-  call, without the parse of torch's headers that makes an extension's build slow), for the per-pixel
-  kernels.
-
-The build folder is private to the package version, torch version, kernel source and build flags
-(``$HICO_KERNEL_DIR/<key>`` or ``~/.cache/hico_plugin/kernels/<key>``), so checkouts and versions never
-share a build. Builders take an ``flock`` first (the kernel drops it when a builder dies); whoever holds
-it knows a leftover torch lock file is stale and removes it, saying so in one line. The build itself runs
-in a child process bounded by ``BUILD_TIMEOUT_SECONDS`` (a hung compiler is killed), and the finished
-module is then loaded in-process. A build that fails, times out or cannot start within
-``BUILD_WAIT_SECONDS`` makes the kernel unavailable with one line, and its caller uses its torch twin.
-The first build into a kernel folder says so once per process (``FIRST_BUILD_NOTE``), so a first run
-explains its wait. ``HICO_NO_FUSED=1`` turns every kernel off.
+A torch extension (``loader="torch"``) for the compositor, which needs ATen; a plain ``extern "C"`` library
+(``loader="ctypes"``, one compiler call, no torch headers) for the per-pixel kernels. Each build has its own
+folder per package, torch, source and flags (under ``$HICO_KERNEL_DIR`` or ``~/.cache/hico_plugin/kernels``), an
+``flock`` and a child process bounded by ``BUILD_TIMEOUT_SECONDS``; one that fails, times out or cannot start
+within ``BUILD_WAIT_SECONDS`` leaves the torch twin in use. ``HICO_NO_FUSED=1`` turns all off.
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """Exact k-nearest-neighbour search between point sets, with OpenCV's FLANN k-d tree.
 
-OpenCV is a dependency already; SciPy's cKDTree would add its resident memory to every run. The
-``FLANN_INDEX_KDTREE_SINGLE`` index is one k-d tree searched by branch and bound; with unlimited checks
-and ``eps = 0`` it prunes a branch only when the branch cannot hold a closer point, so the search is
-exact (FLANN's ``KDTreeSingleIndex::searchLevel``: "Performs an exact search in the tree"), and it is at
-least as fast as cKDTree (benchmarks/RESULTS.md). The tree is built without randomness: the same input
-always gives the same output.
-
-FLANN works in float32. The points are centred on their bounding box's middle (in float64) before the
-conversion, so coordinates far from the origin (a 1e6 offset) keep float32's precision relative to the
-points' extent. The tree returns ``_MARGIN`` candidates more than asked for, re-measured in float64 and
-sorted: float32 rounding that ranks a true neighbour just past the k-th no longer loses it. Only more
-than ``_MARGIN`` points within float32 rounding of the k-th distance could still make it differ from a
-float64 search.
+OpenCV is a dependency already; SciPy's cKDTree would add its resident memory to every run. With unlimited checks
+and ``eps = 0`` the ``FLANN_INDEX_KDTREE_SINGLE`` index prunes only branches that cannot hold a closer point, so
+the search is exact (FLANN's ``KDTreeSingleIndex::searchLevel``) and deterministic. FLANN is float32: points are
+centred on their bounding box's middle in float64 first, and ``_MARGIN`` extra candidates are re-measured in
+float64 and sorted, so rounding near the k-th distance loses no true neighbour (benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations

@@ -62,17 +62,12 @@ def _paper() -> HiCoTrainerConfig:
 def _lite() -> HiCoTrainerConfig:
     """HiCo-GS sized for a 2-core CPU: the paper's method and proportions on a 3,500-step schedule.
 
-    Five changes besides the length (their figures: benchmarks/RESULTS.md, "Figures behind the defaults"):
-    - anchors adjusted every 750 reference steps, not 100: scaled down to this run, each decision would
-      average the gradients of a handful of views, and the noisy means grow anchors the CPU cannot afford;
-    - photos larger than 320 px train coarse to fine (``ResolutionSchedule``: from a quarter of the size,
-      never below a 320 px long side, to full size at the last step, the pixels rising with the cube of
-      the run's progress); smaller photos, such as the built-in scenes', train at full size throughout;
-    - octree levels only where they beat one flat level (``lod_rule="measured"``);
-    - every octree level on by a sixth of the run (``coarse_steps`` 5,000 reference steps) instead of
-      CityGS-X's third, so a short run trains its finest levels long enough;
-    - the final LPIPS with AlexNet (the LPIPS project's, splatfacto's and gsplat's default), much faster
-      than VGG-16 on large photos (``--model.eval-lpips vgg`` for the paper's column)."""
+    Besides the length (figures: benchmarks/RESULTS.md, "Figures behind the defaults"): anchors adjusted every 750
+    reference steps, not 100 (scaled down, a decision would average a handful of views); photos over 320 px train
+    coarse to fine (``ResolutionSchedule``, pixels rising with the cube of progress); octree levels only where
+    they beat one flat level (``lod_rule="measured"``); every level on by a sixth of the run (``coarse_steps``
+    5,000), not CityGS-X's third; final LPIPS with AlexNet, faster than VGG (``--model.eval-lpips vgg``: the
+    paper's)."""
     config = _with(_paper(), "hico-gs-lite", max_steps=3_500, steps_photos=64, eval_every=0, save_every=500,
                    resolution=ResolutionSchedule(start_scale=0.25, full_at=1.0, min_long_side=320,
                                                   ramp_power=3.0))

@@ -1,21 +1,10 @@
 """Named registries of swappable components.
 
-A component kind (renderer backend, context aggregator, loss, field, model, ...) owns one
-``Registry``; implementations register under a short name, and configs hold that name as a plain
-string, so tyro exposes the choice as a flag (``--model.renderer.backend gsplat``) and a plugin can add
-a new implementation without editing this package::
-
-    CONTEXT_AGGREGATORS = Registry("context aggregator")
-
-    @CONTEXT_AGGREGATORS.register("mean")
-    class MeanContext(nn.Module): ...
-
-    CONTEXT_AGGREGATORS.get("mean")  # -> MeanContext
-
-Packages outside this one plug in through the entry-point group ``hico_plugin.components`` (the way
-nerfstudio finds ``nerfstudio.method_configs``): each entry point names a module whose import
-registers that package's components and presets (``hico_plugin.presets.register_preset``). They are
-imported the first time any registry is read (``load_plugins``); see ``tests/plugin_example/``.
+A component kind (renderer backend, loss, field, ...) owns one ``Registry``; each implementation registers under a
+short name (``@CONTEXT_AGGREGATORS.register("mean")``) that configs hold as a plain string, so tyro exposes the
+choice as a flag (``--model.renderer.backend gsplat``) and a plugin adds one without editing this package: an
+entry point of group ``hico_plugin.components`` names a module whose import registers its components and presets
+(``register_preset``), imported when a registry is first read (``load_plugins``; ``tests/plugin_example/``).
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """Open sky or near surfaces: does a region that no reconstructed point explains move with parallax?
 
-A distant background is a function of the ray direction alone: seen from two camera positions, one
-direction shows one colour, so a cell maps into another view by the rotation between the views alone
-(the homography at infinity, Hartley & Zisserman, Multiple View Geometry, 2nd ed., Sec. 13.4). A near
-surface without features lies at about the depth of the reconstructed points around it, so its cell
-maps into another view through that depth. Each uncovered cell of a view (``analysis.uncovered_cells``)
-is mapped both ways into the ``PARTNERS`` nearest views; where both land on uncovered cells of that
-view, at least a cell apart, the colours found there are compared with the cell's own (each photo's
-colours divided by its measured exposure gains): the pair votes for the hypothesis whose colour is
-closer by more than ``MARGIN``. The cells are near surfaces when the points' depth wins at least
-``NEAR_SHARE`` of the pairs and ``NEAR_ODDS`` times as many as infinity; else open sky. This reads
-colour, so a region of one flat colour (a plain grey ceiling, an overcast sky) shows no parallax either
-way and counts as distant — the directional background models it as well as a sky. The shares the
-thresholds were set from: benchmarks/RESULTS.md, "Figures behind the defaults".
+Each uncovered cell (``analysis.uncovered_cells``) is mapped into the ``PARTNERS`` nearest views by the rotation
+alone (the homography at infinity, Hartley & Zisserman, Multiple View Geometry, 2nd ed., Sec. 13.4) and through
+the nearby points' depth; each pair votes for the mapping whose colour, exposure gains divided out, is closer by
+``MARGIN``. Near surfaces when depth wins ``NEAR_SHARE`` of the pairs and ``NEAR_ODDS`` times infinity's votes,
+else open sky, as a flat colour is (thresholds: benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations

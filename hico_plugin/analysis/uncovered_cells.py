@@ -1,13 +1,10 @@
 """The share of each photo that no reconstructed point explains, where it lies, and what it is.
 
-Anchors are seeded at the sparse points and densify next to Gaussians that exist, so a part of the
-photos far from every point keeps showing whatever the model composites behind the Gaussians. Such a
-part is measured in image cells (``CELLS_PER_SIDE`` to the shorter side): a cell is *uncovered* when
-no sparse point projects into it, it is smooth and bright, and it is connected through such cells to
-the image edge facing the scene's up vector. A point occluded in a view still projects onto a surface
-pixel, so this needs no visibility. Whether the uncovered part is open sky (distant: it does not move
-with parallax) or near surfaces SfM found no features on (indoors: plain walls and ceilings) is
-measured by ``analysis.parallax``.
+Anchors seed at the sparse points and densify next to existing Gaussians, so photo regions far from every point
+show whatever the model composites behind them. A cell (``CELLS_PER_SIDE`` to the shorter side) is *uncovered*
+when no sparse point projects into it, it is smooth and bright, and it connects through such cells to the image
+edge facing the scene's up vector (no visibility needed: an occluded point still lands on a surface pixel).
+Whether it is open sky or a featureless near surface is ``analysis.parallax``'s question.
 """
 
 from __future__ import annotations

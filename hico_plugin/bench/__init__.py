@@ -1,6 +1,4 @@
-"""Benchmarks and feature analysis: ``hico-bench`` (accuracy vs time) and ``hico-analyze``.
-
-Public API::
+"""Benchmarks and feature analysis: ``hico-bench`` (accuracy vs time) and ``hico-analyze``. Public API::
 
     BenchConfig(...).resolved() -> BenchConfig (BENCH_MODES: full / quick defaults); run_matrix(config, log=print) -> list[cell dict]
     write_outputs(config, cells, out_dir) -> results; load_results(path); compare_results(a, b) -> str

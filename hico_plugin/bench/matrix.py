@@ -1,18 +1,10 @@
 """The benchmark matrix: presets x scenes x training budgets, one cached JSON per cell.
 
-Budgets and schedules: the model scales every step-valued schedule (progressive levels,
-densification, DNGC t0 / T) by ``max_steps``. With ``schedule="nested"`` (default) one run per
-(preset, scene) trains to the largest budget and is evaluated when it passes each smaller budget:
-cheap, and it shows the accuracy a user has *at that time* of a long run — but a 500-step checkpoint
-of a 2000-step run has not finished its schedule (e.g. DNGC may not have started yet), so it is not
-the same as a run configured for 500 steps. ``schedule="separate"`` trains each budget as its own
-run with its own schedule (costs the sum of the budgets). The config hash in every cell key includes
-``max_steps``, so cells of the two modes never mix.
-
-Cache layout (``OUTPUT/``)::
-
-    cells/<preset>__<scene>__b<budget>__s<seed>__<hash>.json    one finished cell (atomic write)
-    runs/<scene>/<preset>-s<seed>-<hash>/                      the training run (config.yml, checkpoint)
+``schedule="nested"`` (default) trains one run per (preset, scene) to the largest budget, evaluated as it passes
+each smaller one: cheap, though such a checkpoint has not finished its schedule (schedules scale with
+``max_steps``); ``"separate"`` trains each budget as its own run. ``max_steps`` is in each cell key's hash, so the
+modes never mix. Under ``OUTPUT/``: ``cells/<preset>__<scene>__b<budget>__s<seed>__<hash>.json`` (a finished cell,
+written atomically) and ``runs/<scene>/<preset>-s<seed>-<hash>/`` (its run).
 """
 
 from __future__ import annotations

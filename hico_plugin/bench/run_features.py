@@ -1,12 +1,8 @@
 """The paper's cross-level feature analysis (supplementary "Cross-Level Feature Incoherence Analysis").
 
-For anchor features f [N, d] and octree levels l [N]:
-
-    d(l_a, l_b) = 1 - mean_{i in A_a, j in A_b} cos(f_i, f_j)  =  1 - u_a . u_b,
-
-where u_a is the mean of the unit-normalised features of level a (the double mean factorises), so the
-whole [L, L] matrix costs one pass over the anchors. For CLCA runs the same is computed on
-f_hat = context(f) (the features the decoder sees).
+For anchor features f [N, d] and octree levels l [N]: d(l_a, l_b) = 1 - mean_{i in A_a, j in A_b} cos(f_i, f_j) =
+1 - u_a . u_b, with u_a the mean unit-normalised feature of level a (the double mean factorises), so the [L, L]
+matrix costs one pass. For CLCA runs it is also computed on f_hat = context(f), the features the decoder sees.
 """
 
 from __future__ import annotations

@@ -1,20 +1,10 @@
 """Per-stage wall time of training steps, measured from outside the model.
 
-``StageTimer`` wraps, on one model and optimiser *instance* (never the classes), the callables a
-training step goes through and adds synchronised ``perf_counter`` intervals per stage:
-
-    lod_select      field.select                       (LOD, Eq. 1, + frustum culling)
-    clca            field.context + its graph          (Sec. 3.3; near zero for context "none")
-    decode          field.decode minus clca            (gathers + neural-Gaussian MLPs)
-    rasterize       renderer forward
-    losses          model.losses                       (L1 + D-SSIM, DNGC once w(t) > 0)
-    backward        end of train_step -> after_backward (autograd of everything above)
-    stats           model.after_backward               (densification statistics)
-    optimizer       optimizers.step
-    densify         model.after_optimizer_step         (grow / prune, optimiser resize)
-
-Each stage also runs under ``torch.profiler.record_function(f"hico/{stage}")`` so a profiler trace
-shows the same ranges. Nested stages (clca inside decode) are subtracted from their parent.
+``StageTimer`` wraps the callables of one model and optimiser *instance* (never the classes) and adds synchronised
+``perf_counter`` intervals per stage: lod_select (LOD, Eq. 1, + frustum culling), clca (Sec. 3.3), decode (minus
+clca), rasterize, losses, backward, stats (densification statistics), optimizer, densify (grow / prune). Each
+stage also runs under ``torch.profiler.record_function(f"hico/{stage}")``; nested stages (clca inside decode) are
+subtracted from their parent.
 """
 
 from __future__ import annotations

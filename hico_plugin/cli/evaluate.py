@@ -1,12 +1,9 @@
 """``hico-eval --load-config RUN/config.yml [--checkpoint PATH] [--render-dir DIR] [--data DIR]``.
 
-Evaluates the run on its test views (the engine's ``evaluate``, as at the end of training) and
-rewrites RUN/eval.json in nerfstudio's ns-eval layout, with surface metrics when a mesh exists and
-the scene has a ground-truth surface; ``--render-dir`` also saves, per test view, the render beside
-the ground truth and the depth and normal maps. ``--data`` scores the model on another dataset of
-the same views in the same scene frame instead (say the same SfM poses with the photos as taken
-rather than resampled by undistortion, whose pinhole cameras differ a little), so two ways of
-preparing the photos are compared on one pixel grid.
+Evaluates the run on its test views as at the end of training and rewrites RUN/eval.json (ns-eval layout, with
+surface metrics when a mesh and a ground-truth surface exist). ``--render-dir`` saves per view the render, the
+ground truth and the depth and normal maps; ``--data`` scores another dataset of the same views in the same scene
+frame (say the photos as taken rather than undistorted), so two preparations compare on one pixel grid.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """``hico-export --load-config RUN/config.yml EXPORTER [...]``: exports of a trained run.
 
-    hico-export --load-config outputs/city-block/hico-gs-lite/config.yml gaussians        # the whole model
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml gaussians --camera-index 3
-    hico-export --load-config outputs/city-block/hico-gs-lite/config.yml anchors --output anchors.ply
     hico-export --load-config outputs/city-block/hico-gs-lite/config.yml mesh --depth-filter
 
-Every registered exporter (``hico_plugin.export.exporters.EXPORTERS``, installed plug-ins' included) is
-a subcommand by its name; a new one is one file that registers itself. Run options may stand before or
-after the exporter name. Built-in outputs are PLY files in COLMAP's frame.
+Every registered exporter (``hico_plugin.export.exporters.EXPORTERS``, plug-ins' included) is a subcommand by its
+name; run options may stand before or after it. Built-in outputs are PLY files in COLMAP's frame.
 """
 
 from __future__ import annotations

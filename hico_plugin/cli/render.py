@@ -1,11 +1,10 @@
-"""``hico-render --load-config RUN/config.yml {test|orbit|interpolate|camera-path} [--outputs ...]``: frames and videos.
+"""``hico-render --load-config RUN/config.yml {test|orbit|interpolate|camera-path} [--outputs ...]``: frames and
+videos.
 
     hico-render --load-config outputs/city-block/hico-gs-lite/config.yml orbit --outputs rgb depth level
-    hico-render --load-config RUN/config.yml camera-path --camera-path camera_path.json
-    hico-render --load-config RUN/config.yml test --outputs rgb normal depth-normal
 
-Renders at evaluation LOD (every level active) through the model's display outputs (render_for_display), one PNG per frame
-and output in OUTPUT_DIR/<output>/, and OUTPUT_DIR/<output>.mp4 when a video writer is available.
+Renders at evaluation LOD (every level active) through the model's ``render_for_display``: one PNG per frame and
+output in OUTPUT_DIR/<output>/, and OUTPUT_DIR/<output>.mp4 when a video writer is available.
 """
 
 from __future__ import annotations

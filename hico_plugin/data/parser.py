@@ -121,14 +121,12 @@ class DataParserConfig(InstantiateConfig):
             raise HicoError(f"--orient-method: expected manhattan, vertical or up, got '{self.orient_method}'")
 
     def parse(self, announce: bool = True, frame: dict | None = None) -> Dataset:
-        """Read, check and normalise the dataset; images stay on disk until first used. The notes the
-        reading made (frames skipped, the automatic downscale, ...) are printed when ``announce``, and kept
-        in ``Dataset.notes`` either way: a trainer prints them only once every refusal is behind it.
+        """Read, check and normalise the dataset; images stay on disk until first used. Its notes (frames skipped,
+        the automatic downscale, ...) are printed when ``announce`` and kept in ``Dataset.notes``.
 
-        ``frame``: the scene frame a checkpoint was trained in (``Dataset.frame()``): the views are loaded
-        in it when today's normalisation places the cameras the same (``frame_differences``; the heading
-        from re-triangulated seed points may differ a little), else in today's, which the caller's
-        ``check_frame`` then refuses."""
+        ``frame``: the scene frame a checkpoint was trained in (``Dataset.frame()``): the views load in it when
+        today's normalisation places the cameras the same (``frame_differences``), else in today's, which the
+        caller's ``check_frame`` then refuses."""
         self.validate()
         data_dir = self.data
         record = (self.format or detect_format(data_dir)).read(data_dir)

@@ -1,12 +1,9 @@
 """The scene normalisation: COLMAP's world frame <-> the normalised frame training works in.
 
-``world_normalised = rotation @ (world_colmap - centre) * scale``: the rotation turns the scene's
-vertical (found from the cameras, ``scene_up``) to +z and its walls onto the x and y axes
-(``scene_heading``), the centre and scale make the cameras' spread a unit sphere, so a model in
-millimetres or kilometres, z-up or y-down, trains the same. Camera frames are scaled with the world
-so viewmats stay rigid: a viewmat ``[R | t]`` in COLMAP's frame becomes
-``[R @ rotation.T | scale * (R @ centre + t)]``, and camera-space depths are multiplied by ``scale``
-(camera-space normals are unchanged).
+``world_normalised = rotation @ (world_colmap - centre) * scale``: the rotation turns the vertical (``scene_up``)
+to +z and the walls onto the x and y axes (``scene_heading``); centre and scale make the cameras' spread a unit
+sphere, so any units or up axis train the same. A viewmat ``[R | t]`` in COLMAP's frame becomes
+``[R @ rotation.T | scale * (R @ centre + t)]``; camera-space depths scale by ``scale``, normals are unchanged.
 """
 
 from __future__ import annotations
@@ -26,16 +23,13 @@ MIN_HEADING_SPREAD = 0.17
 
 
 def scene_up(viewmats: Tensor, method: str = "vertical") -> Tensor:
-    """The scene's up direction [3] (unit, float64) from world->camera viewmats [C, 4, 4] (OpenCV axes:
-    row 0 of R is a camera's right axis, row 1 negated its up axis); ``method`` "up" is the cameras'
-    mean up (how runs trained before "vertical" existed were oriented).
+    """The scene's up direction [3] (unit, float64) from world->camera viewmats [C, 4, 4] (OpenCV axes: row 0 of R
+    is a camera's right axis, row 1 negated its up axis).
 
-    Photos are taken level: a camera's right axis stays horizontal when it pitches down at a building,
-    while its up axis tilts with the pitch, so the cameras' mean up leans toward where they look. The
-    vertical is the direction most orthogonal to every right axis, the right-singular vector of the
-    stacked right axes with the smallest singular value (nerfstudio's "vertical" orientation). When the
-    right axes are nearly parallel (every photo faces one way) that direction is not fixed by them, and
-    the mean up made orthogonal to the mean right axis is used. The sign follows the mean up."""
+    Level photos keep the right axis horizontal while the up axis tilts with the pitch, so "vertical"
+    (nerfstudio's) is the stacked right axes' right-singular vector of smallest singular value, or, when they are
+    nearly parallel, the mean up made orthogonal to the mean right axis. ``method`` "up" is the cameras' mean up
+    (how runs before "vertical" were oriented). The sign follows the mean up."""
     viewmats = viewmats.to(torch.float64)
     rights, mean_up = viewmats[:, 0, :3], -viewmats[:, 1, :3].mean(dim=0)
     if method == "up":
@@ -65,16 +59,13 @@ MIN_HEADING_SHARE = 0.2
 
 
 def scene_heading(points: Tensor) -> float:
-    """The turn (radians) about +z after which the dominant vertical planes of a z-up scene (walls,
-    facades) face the x and y axes, from its sparse points [P, 3]; 0 when no direction dominates.
+    """The turn (radians) about +z after which the dominant vertical planes of a z-up scene (walls, facades) face
+    the x and y axes, from its sparse points [P, 3]; 0 when no direction dominates.
 
-    The anchor octree is a grid along the frame's axes: a wall that runs along an axis lies in one
-    layer of cells, a wall at 30 degrees crosses them in steps, and Gaussians grown from stepped anchors
-    place the surface less exactly (city-block's mesh F1 fell from 0.57 to 0.31 when turned 30 degrees
-    about its up axis). Each point's normal is the least-variance axis of its nearest neighbours; the
-    normals of planar, near-horizontal patches vote with their heading modulo 90 degrees (walls at right
-    angles agree, a Manhattan world); the heading most of them share, not their mean, so buildings
-    turned off the street grid do not pull it."""
+    The anchor octree is a grid along the axes, so a wall at an angle crosses its cells in steps and the surface
+    is placed less exactly (benchmarks/RESULTS.md, "Figures behind the defaults"). The normals of planar,
+    near-horizontal patches vote with their heading modulo 90 degrees (a Manhattan world); the most shared heading
+    wins, not the mean, so buildings turned off the street grid do not pull it."""
     points = points.to(torch.float32)[:: max(1, -(-len(points) // HEADING_MAX_POINTS))]
     if len(points) <= NEIGHBOURS:
         return 0.0

@@ -1,11 +1,9 @@
 """Seed points triangulated from known poses (COLMAP's point triangulator, through pycolmap 4).
 
-For posed image sets without a point cloud (transforms.json without ``ply_file_path``, Mega-NeRF):
-SIFT on the CPU, matching of the pairs the poses say overlap (``pose_pairs``), then
-``pycolmap.triangulate_points`` on a reconstruction that holds the given cameras and poses, which
-stay fixed. The result is cached under the user cache directory, keyed by everything it depends on
-(image files, cameras, poses, options), never written into the dataset folder; pycolmap is imported
-only when the cache misses.
+For posed image sets without a point cloud (transforms.json without ``ply_file_path``, Mega-NeRF): SIFT on the
+CPU, matching of the pairs the poses say overlap (``pose_pairs``), then ``pycolmap.triangulate_points`` with the
+given cameras and poses fixed. Cached under the user cache directory, keyed by every input, never in the dataset
+folder; pycolmap is imported only on a cache miss.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """Training engine: trainer, optimisers, checkpoints, callbacks; knows nothing about Gaussians.
 
-Public API (see each module for details)::
-
-    TrainerConfig(...).setup(model=..., dataset=..., callbacks=[...]) -> Trainer; Trainer.train()
-    load_run(config_path, checkpoint=None, device=None) -> LoadedRun (config, model, dataset, checkpoint, run_dir)
-    Optimizers(param_groups, schedules); Optimizers.resize_group(name, new_params, kept_rows, num_new)
-    ParamGroupOptimizerConfig(lr_init, lr_final, ...).schedule(max_steps, extent) -> LRSchedule
-    save_config(config, path) / load_config(path)
-    distributed: is_main_process(), all_reduce_sum_(t), all_reduce_mean_(t), get_rank(), get_world_size()
+Public API (see each module): ``TrainerConfig(...).setup(model=..., dataset=..., callbacks=[...]) -> Trainer``;
+``load_run(config_path, checkpoint=None, device=None) -> LoadedRun``; ``Optimizers(param_groups, schedules)`` with
+``resize_group(name, new_params, kept_rows, num_new)``; ``ParamGroupOptimizerConfig(...).schedule(max_steps,
+extent) -> LRSchedule``; ``save_config`` / ``load_config``; ``distributed``: ``is_main_process``,
+``all_reduce_sum_``, ``all_reduce_mean_``, ``get_rank``, ``get_world_size``.
 """
 
 from hico_plugin.engine.callbacks import TrainerCallback

@@ -1,19 +1,10 @@
-"""Adam without ``torch.optim``.
+"""Adam without ``torch.optim``: bit for bit ``torch.optim.Adam(fused=True)`` for the engine's options.
 
-Every ``torch.optim`` optimizer imports ``torch._dynamo`` on its first call (``Optimizer.step`` goes
-through ``_use_grad_for_differentiable``, ``zero_grad`` and ``state_dict`` through
-``torch._disable_dynamo``), which with the sympy and FX modules it pulls in holds about 70 MiB of
-resident memory for the rest of a CPU run that never compiles anything (torch 2.13). This class does
-what ``torch.optim.Adam`` does with the options the engine uses (one parameter group, no weight decay,
-no AMSGrad) through the same kernel as ``torch.optim.Adam(fused=True)``, so the parameters it produces
-are bit for bit that optimizer's, and ``state_dict`` / ``load_state_dict`` use torch's layout, so
-checkpoints move either way (with the fused or the default Adam).
-
-The fused kernel (``torch._fused_adam_``, CPU and CUDA; torch's documentation calls it theoretically
-the fastest of its three implementations) updates every parameter of the group in one vectorised pass
-without the temporary ``denom`` as large as the parameter that the single-tensor loop (torch's CPU
-default) allocates, and equals that loop up to float32 rounding. On the city-block model at step 3,500
-(76k anchors, 2 threads) the optimizer's share of a training step fell from 14 ms to 4 ms.
+Every ``torch.optim`` optimizer imports ``torch._dynamo`` on its first call, which with the sympy and FX modules
+it pulls in stays resident for the rest of a CPU run that never compiles. This covers one group, no weight decay,
+no AMSGrad, through ``torch._fused_adam_`` (CPU and CUDA): one pass over the group without the parameter-sized
+``denom`` of torch's single-tensor CPU default (equal to it up to float32 rounding). ``state_dict`` uses torch's
+layout, so checkpoints move either way (memory and timings: benchmarks/RESULTS.md, "Figures behind the defaults").
 """
 
 from __future__ import annotations

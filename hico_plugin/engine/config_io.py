@@ -1,22 +1,10 @@
 """``config.yml``: the whole config dataclass tree as YAML that reloads the run exactly.
 
-Every dataclass is written with its import path as a YAML tag, so ``load_config`` rebuilds the same
-classes (presets, subclasses, plugin components)::
-
-    !dataclass:hico_plugin.engine.trainer.TrainerConfig
-    max_steps: 3000
-    output_dir: !path outputs/city-block
-    model: !dataclass:hico_plugin.model.HiCoModelConfig
-      ...
-
-Paths and tuples keep their types (``!path``, ``!tuple``); fields missing from the file take their
-defaults, unknown fields are an error naming the file and the field.
-
-A config.yml is untrusted: a tag resolves only to a config class already loaded -- a subclass of
-``InstantiateConfig`` (every component, preset and plug-in config) or a dataclass / enum one of them
-holds, or a subclass of that dataclass (a plug-in's dataset format) -- and never imports the module it
-names (an import would run that module's code). Whoever loads a run imports the components first (the
-CLIs import ``hico_plugin.presets``).
+Each dataclass is tagged with its import path (``!dataclass:hico_plugin.engine.trainer.TrainerConfig``), so
+``load_config`` rebuilds the same classes; ``!path`` / ``!tuple`` keep their types; missing fields take their
+defaults, unknown ones are an error naming the file and the field. The file is untrusted: a tag resolves only to a
+config class already loaded (an ``InstantiateConfig`` subclass, a dataclass / enum one holds, or a subclass of
+that) and never imports the module it names, so a loader imports the components first (``hico_plugin.presets``).
 """
 
 from __future__ import annotations

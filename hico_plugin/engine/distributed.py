@@ -164,21 +164,13 @@ def barrier() -> None:
 
 
 def shutdown(wait_for_peers: bool = True) -> None:
-    """Leave the process group before the process exits; with ``wait_for_peers`` (a run that ended
-    normally) every rank first meets the others at a barrier. After a failure a peer may never arrive,
-    so the group is left without waiting.
+    """Leave the process group before the process exits; with ``wait_for_peers`` (a run that ended normally) every
+    rank first meets the others at a barrier (after a failure a peer may never arrive).
 
-    Why the barrier: a gloo worker thread wakes the caller of a collective, then drops its own
-    reference to the finished work; if that was the last reference to the work's tensors, their
-    Python objects are released, which takes the GIL. Once the interpreter is finalizing, taking the
-    GIL ends the thread inside that destructor and the process aborts (SIGABRT, "terminate called
-    without an active exception"; a core dump of an aborted worker shows the main thread in
-    Py_FinalizeEx and a ``ProcessGroupGloo::runLoop`` thread in ``~AsyncAllgatherWork`` ->
-    ``decref_pyobject`` -> ``take_gil`` -> ``pthread_exit``; pytorch/pytorch#179291). Ending every
-    rank with a barrier makes the last work one that holds no tensors (it keeps only weak references
-    to earlier work) and gives the threads that ran the earlier ones a round trip to the peers to
-    finish first. It narrows the race to a thread that stays descheduled through that round trip and
-    the group's teardown; it cannot close it from Python."""
+    The barrier narrows a shutdown race (pytorch/pytorch#179291): a gloo worker that drops the last reference to a
+    finished work's tensors takes the GIL, which during interpreter finalization aborts the process (SIGABRT,
+    "terminate called without an active exception"). Ending on a barrier makes the last work one that holds no
+    tensors and gives earlier ones a round trip to finish; Python cannot close the race."""
     if dist.is_available() and dist.is_initialized():
         if wait_for_peers and dist.get_world_size() > 1:
             dist.barrier()

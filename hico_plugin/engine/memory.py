@@ -1,16 +1,10 @@
 """How freed heap memory is kept for reuse during training and handed back between a run's phases.
 
-torch's CPU tensors are malloc'd. A training step allocates and frees the same few dozen large
-temporaries (1 to 30 MB on a 320x240 view) every step. By default glibc serves blocks above its mmap
-threshold with a fresh mmap and returns the top of the heap to the system once more than the trim
-threshold is free there, so each step pays the kernel's page faults (zero-filled pages) for memory it
-had a moment before. ``keep_freed_memory`` sets both thresholds for training (mallopt(3)): blocks up to
-32 MiB come from the heap, and freed heap pages stay mapped for the next step. That changes where
-blocks live, not what is computed, and saves the page faults (benchmarks/RESULTS.md).
-
-Between phases the opposite is wanted: ``malloc_trim(0)`` returns every whole free page of every arena
-to the system (glibc >= 2.8; malloc_trim(3)); the blocks stay free for reuse, so nothing computed
-changes, and the final evaluation's peak RSS is lower.
+By default glibc serves large blocks with a fresh mmap and trims the heap top, so each step page-faults in the
+temporaries it freed a moment before. ``keep_freed_memory`` raises both thresholds for training (mallopt(3)):
+blocks up to 32 MiB come from the heap and freed pages stay mapped. Between phases ``malloc_trim(0)`` (glibc >=
+2.8) returns every whole free page of every arena, lowering the final evaluation's peak RSS. Neither changes what
+is computed (figures: benchmarks/RESULTS.md, "Figures behind the defaults").
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
-"""What the engine asks of a model and of a dataset, and what it hands them.
+"""What the engine asks of a model (``TrainableModel``) and a dataset (``TrainDataset``): structural protocols.
 
-The engine knows nothing about Gaussians. A model is an ``nn.Module`` that also implements
-``TrainableModel``; a dataset implements ``TrainDataset``. Both are structural protocols, so the real
-HiCo model / COLMAP dataset and the toy model of the tests satisfy them without inheriting anything.
-
-One training step, as the engine runs it (``step`` counts optimizer steps from 0)::
-
-    batch  = B training views (the same global batch is drawn on every rank, then split)
-    output = model.train_step(batch, step)        # loss = MEAN over the batch's images
-    output.loss.backward()
-    model.after_backward(step, output)            # e.g. densification statistics from grads
-    gradients averaged over ranks (no-op on one process)
-    optimizers.step(step)                         # per-group LR from the schedules, then Adam
-    model.after_optimizer_step(step, optimizers)  # e.g. grow / prune; may resize parameters
-
-Because ``loss`` is the mean over the batch and gradients are averaged over ranks, P workers x batch b
-give the same update as 1 worker x batch P*b.
+One step (``step`` counts optimizer steps from 0): ``output = model.train_step(batch, step)`` on B views (one
+global batch drawn on every rank, then split; loss = MEAN over its images), ``output.loss.backward()``,
+``model.after_backward(step, output)``, gradients averaged over ranks, ``optimizers.step(step)``,
+``model.after_optimizer_step(step, optimizers)`` (may resize parameters); so P workers x batch b update as 1
+worker x batch P*b.
 """
 
 from __future__ import annotations
@@ -99,14 +88,10 @@ class StepOutput:
 class TrainableModel(Protocol):
     """A model the Trainer can drive (an ``nn.Module`` with these methods).
 
-    ``state_dict`` / ``load_state_dict`` must carry everything needed to resume exactly, including
-    densification accumulators and the current parameter shapes: ``load_state_dict`` on a freshly
-    built model must resize its parameters to the checkpoint's shapes. The engine rebuilds the
-    optimizers from ``param_groups()`` after loading, so replaced ``nn.Parameter`` objects are fine.
-
-    Optional attribute: ``train_gt``, the keys of ``TrainBatch.gt`` that ``train_step`` reads (e.g.
-    ``("mask",)``); the engine then decodes only those for training batches. Without it, training
-    batches carry every kind of ground truth the dataset has.
+    ``state_dict`` / ``load_state_dict`` carry everything to resume exactly, densification accumulators and the
+    current parameter shapes included (loading resizes a fresh model's parameters); the engine rebuilds the
+    optimizers from ``param_groups()`` afterwards. Optional ``train_gt``: the keys of ``TrainBatch.gt`` that
+    ``train_step`` reads (e.g. ``("mask",)``), the only ones decoded for training batches (default: every kind).
     """
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:

@@ -1,19 +1,10 @@
-"""The run directory: where a run lives, one trainer at a time, how a run starts in it (fresh,
-resumed or overwritten), the files that describe it, and its log trimmed on resume.
+"""The run directory: where a run lives, its lock, how it starts (fresh / resumed / overwritten), its files.
 
-Like nerfstudio, a run without ``--output-dir`` gets its own folder
-``outputs/<experiment>/<method>/<timestamp>/``; ``--resume`` without one continues the newest there.
-While a trainer writes a run it holds an exclusive ``flock`` on ``RUN/.lock`` (the kernel drops it
-when the process dies, however it dies, so a crash never leaves a stale lock); a second trainer on
-the same folder refuses in one line, and a run refused before it started removes the folder it made.
-
-A run directory (``config.output_dir``, locked while a trainer writes it)::
-
-    config.yml                         the resolved config tree (``load_config`` reloads it)
-    metrics.jsonl                      one JSON object per logged step / eval (trimmed on resume)
-    checkpoints/step-XXXXXXXXX.ckpt    named by the number of completed steps; the last few kept
-    eval.json                          ns-eval layout, written after the final evaluation
-    effects.json (and others)          what the model derived from the data (``run_documents``)
+Without ``--output-dir`` a run gets ``outputs/<experiment>/<method>/<timestamp>/`` (as in nerfstudio);
+``--resume`` continues the newest there. A writing trainer holds an exclusive ``flock`` on ``RUN/.lock`` (the
+kernel drops it however the process dies); a second one refuses. Files: ``config.yml``, ``metrics.jsonl`` (a JSON
+object per logged step / eval, trimmed on resume), ``checkpoints/step-XXXXXXXXX.ckpt`` (by completed steps, the
+last few kept), ``eval.json`` (ns-eval layout), ``run_documents`` (``effects.json``, ...).
 """
 
 from __future__ import annotations

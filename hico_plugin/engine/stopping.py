@@ -1,13 +1,8 @@
-"""Stopping a run cleanly: SIGINT (Ctrl-C), SIGTERM (kill, schedulers) and SIGHUP (a closed
-terminal) all ask the trainer to checkpoint after the current step and return.
+"""Stopping a run cleanly: SIGINT (Ctrl-C), SIGTERM and SIGHUP ask the trainer to checkpoint after the current
+step and return, with exit status ``EXIT_INTERRUPTED`` (130, a Ctrl-C'd command's; 0 finished, 2 failed).
 
-A signal the process was started with ignored stays ignored, as Python itself leaves an inherited
-ignored SIGINT alone: ``nohup`` ignores SIGHUP so a run survives its terminal closing, and a shell
-without job control starts a background job (``cmd &``) with SIGINT ignored so the terminal's Ctrl-C
-does not reach it. SIGTERM then stops such a run.
-
-A run stopped early ends with exit status ``EXIT_INTERRUPTED`` (130, the shell's code for a
-Ctrl-C'd command) so scripts can tell it from a finished run (0) and a failed one (2).
+A signal ignored at start stays ignored, as Python leaves an inherited ignored SIGINT: ``nohup`` ignores SIGHUP,
+and a shell without job control starts ``cmd &`` with SIGINT ignored; SIGTERM still stops such a run.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """The training run: its config and the loop that drives the steps, checkpoints and evaluations.
 
-Its neighbours hold the parts: ``step`` (one optimizer step and its all-reduce), ``data`` (each step's
-batch), ``run_dir`` (where a run lives, its lock, how it starts: fresh / resumed / overwritten),
-``checkpoints`` (files and what a checkpoint holds), ``disk_space`` (room for the run), ``evaluation``
-(the test split, when to evaluate, eval.json), ``controls`` (pause / checkpoint / stop from the viewer),
-``stopping`` (SIGINT / SIGTERM / SIGHUP), ``timing`` (train time, it/s), ``callbacks`` (logs, progress),
-``loading`` (a trained run for the CLIs).
-
-Steps: ``Trainer.step`` counts completed optimizer steps; hooks and callbacks get the 0-based index of
-the step just run. The model's schedules use the same optimizer-step counter.
+Its neighbour modules hold the parts: ``step``, ``data``, ``run_dir``, ``checkpoints``, ``disk_space``,
+``evaluation``, ``controls``, ``stopping``, ``timing``, ``callbacks``, ``loading``. ``Trainer.step`` counts
+completed optimizer steps, as the model's schedules do; hooks and callbacks get the 0-based index of the step just
+run.
 """
 
 from __future__ import annotations

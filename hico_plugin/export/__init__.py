@@ -1,14 +1,10 @@
 """Exports of a trained run: PLY files (baked or decoded Gaussians, anchors) and camera paths for videos.
 
-The exporters ``hico-export`` runs are registered components in ``export/exporters/`` (``EXPORTERS``);
-this package's top level holds what they and ``hico-render`` build on. Public API::
-
-    write_ply(path, vertices) / read_ply(path)                     # binary little-endian PLY, atomic
-    bake(model, dataset, level_range=None, reference_view=None) -> BakedGaussians  # the whole model
-    inria_vertices(means, quats, scales, opacities, colors, normals=None) -> (rows, DroppedRows)
-    anchor_vertices(positions, levels, features, colors=None) -> rows
-    gaussians_to_colmap(means, quats, scales, transform) -> (means, quats, scales)
-    orbit_path(cameras, num_frames) / interpolate_path(cameras, num_frames) -> Cameras
+The ``hico-export`` exporters are registered in ``export/exporters/`` (``EXPORTERS``); this package holds what
+they and ``hico-render`` build on: ``write_ply`` / ``read_ply`` (binary little-endian, atomic), ``bake(model,
+dataset, level_range=None, reference_view=None) -> BakedGaussians``, ``inria_vertices(...) -> (rows,
+DroppedRows)``, ``anchor_vertices``, ``gaussians_to_colmap``, ``orbit_path`` / ``interpolate_path(cameras,
+num_frames) -> Cameras``.
 """
 
 from hico_plugin.export.bake import BakedGaussians, bake

@@ -1,20 +1,10 @@
-"""The whole model as explicit Gaussians: every anchor (of every level, or of a level range) decoded
-once, for a canonical view of its own.
+"""The whole model as explicit Gaussians: each anchor (all levels, or a level range) decoded once, from its own
+view.
 
-A render decodes only the anchors its camera's LOD and frustum select, and the decoder's MLPs read
-the direction from the camera to each anchor (and its distance, with ``decoder.add_distance``). A
-splat file has no camera, so each anchor is decoded from the view that stands for the photos its
-Gaussians were fitted to: the mean direction of the training cameras that decode it (LOD and
-frustum, as ``AnchorField.select`` at evaluation), at the median of their distances. Chosen over one
-direction for the whole scene (e.g. from the scene centre), which points outwards where the cameras
-look inwards (an orbit) and inwards where they look outwards (a street): the MLPs would read
-directions they never saw. The anchors' CLCA contexts are read among all anchors, as a camera close
-enough to select every level would read them.
-
-The appearance is neutral by default, what test views and the viewer render: the decoder's mean
-appearance embedding and no per-photo colour transform (exposure). A reference photo's appearance
-can be baked in instead. What lies behind the Gaussians (the environment, or the constant background) is
-not Gaussians and is left out.
+A splat file has no camera, so each anchor is decoded from the mean direction of the training cameras that decode
+it (LOD and frustum, as ``AnchorField.select`` at evaluation), at their median distance; one scene-wide direction
+would feed the MLPs directions they never saw. CLCA contexts are read among all anchors. The appearance is neutral
+(mean appearance embedding, no exposure) or a reference photo's; what lies behind the Gaussians is left out.
 """
 
 from __future__ import annotations

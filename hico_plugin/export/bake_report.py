@@ -36,15 +36,11 @@ def file_figures(path: Path, read: Callable[[Path], np.ndarray], model, dataset)
 
 @torch.no_grad()
 def psnr_on_test_views(model, dataset, baked: BakedGaussians) -> dict[str, float | None]:
-    """Mean PSNR (dB) over the test views of ``model`` (a HiCoModel): ``psnr_model``, its own render;
-    ``psnr_baked``, ``baked`` rasterized (the functional ``rasterize`` with the model's backend and
-    cut-offs) and composited as the model composites its own Gaussians (its constant background, or
-    its learned environment, which the file does not hold);
-    ``psnr_baked_vs_model``, the baked render against the model's, what baking loses apart from the
-    model's own error. None without test views.
-
-    The rasterizer culls opacity <= 1/255, what the PLY writer drops, so the baked set renders as the
-    file does (up to its float32 round trip).
+    """Mean PSNR (dB) over the test views of ``model`` (a HiCoModel), None without test views: ``psnr_model``, its
+    own render; ``psnr_baked``, ``baked`` rasterized with the model's backend and cut-offs and composited over the
+    model's constant background or learned environment (which the file does not hold); ``psnr_baked_vs_model``,
+    the baked render against the model's, what baking loses. The rasterizer culls opacity <= 1/255, as the PLY
+    writer drops, so the baked set renders as the file does.
     """
     sums = {"psnr_model": 0.0, "psnr_baked": 0.0, "psnr_baked_vs_model": 0.0}
     # What lies behind the Gaussians (a learned environment) is no part of the file; it is composited from

@@ -1,21 +1,10 @@
-"""nerfstudio's ``camera_path.json``: the file its viewer's render panel saves and ``ns-render
-camera-path`` reads, read and written with the same keys so a path made in either tool renders in both.
+"""nerfstudio's ``camera_path.json`` (its render panel's file, ``ns-render camera-path``'s input), same keys.
 
-What is read (nerfstudio's ``get_path_from_json``): ``render_width`` / ``render_height`` (pixels),
-``fps``, and ``camera_path``: one entry per frame with ``camera_to_world`` (a 4x4 matrix, 16 numbers
-row by row, OpenGL axes: x right, y up, z backwards) and ``fov`` (vertical field of view in degrees;
-the focal length is ``render_height / 2 / tan(fov / 2)``, the principal point the image centre).
-``camera_type`` must be ``perspective`` when present. ``keyframes``, ``seconds`` and the panel's other
-settings are written for the viewer and ignored when rendering.
-
-Frames. Poses in the file are in the dataset's source frame (the COLMAP / transforms.json world),
-so they mean the same place whatever normalisation a run chose. nerfstudio writes its own normalised
-frame; ``nerfstudio_transform`` (its run's ``dataparser_transforms.json``: ``transform`` [3, 4] and
-``scale``, ``x_ns = scale * (transform @ [x; 1])``) maps such a file to the source frame. Cameras
-inside this project are world->camera with OpenCV axes in the run's normalised frame (``viewmat``).
-
-The file is untrusted: it is read as JSON only, and every key that is missing or malformed is a
-HicoError naming it.
+Read: ``render_width`` / ``render_height`` (pixels), ``fps``, per frame ``camera_to_world`` (4x4, 16 numbers row
+by row, OpenGL axes) and ``fov`` (vertical, degrees; focal ``render_height / 2 / tan(fov / 2)``, principal point
+the centre); ``camera_type`` must be ``perspective``. Poses are in the dataset's source frame;
+``nerfstudio_transform`` (``dataparser_transforms.json``: ``x_ns = scale * (transform @ [x; 1])``) maps a
+nerfstudio-frame file there. Untrusted: JSON only; a missing or malformed key is a HicoError naming it.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
 """Decoded Gaussians and anchors -> PLY vertex rows.
 
-Gaussians use the Inria 3DGS layout (what SuperSplat and most splat viewers read)::
-
-    x y z  nx ny nz  f_dc_0..2  opacity  scale_0..2  rot_0..3
-
-colour as the degree-0 SH coefficient ``(rgb - 0.5) / C0``, opacity as its logit, scales as logs and
-rotations as unit (w, x, y, z) quaternions. Rows that a viewer cannot draw are dropped and counted.
+Gaussians use the Inria 3DGS layout (SuperSplat and most splat viewers), ``x y z nx ny nz f_dc_0..2 opacity
+scale_0..2 rot_0..3``: colour as the degree-0 SH coefficient ``(rgb - 0.5) / C0``, opacity as its logit, log
+scales, unit (w, x, y, z) quaternions. Rows that a viewer cannot draw are dropped and counted.
 """
 
 from __future__ import annotations

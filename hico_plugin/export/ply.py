@@ -1,14 +1,7 @@
 """Binary little-endian PLY of one ``vertex`` element, as numpy structured arrays, written atomically.
 
-The layout is what Inria's 3DGS, SuperSplat and most splat viewers read::
-
-    ply
-    format binary_little_endian 1.0
-    element vertex N
-    property float x
-    ...
-    end_header
-    <N packed little-endian records>
+The layout Inria's 3DGS, SuperSplat and most splat viewers read: ``ply``, ``format binary_little_endian 1.0``,
+``element vertex N``, a ``property float x`` line per field, ``end_header``, then N packed little-endian records.
 """
 
 from __future__ import annotations

@@ -1,19 +1,11 @@
-"""Niantic's SPZ, the compressed splat file web viewers open (PlayCanvas / SuperSplat, Spark, Babylon),
-from the same rows as the Inria PLY: 20 bytes a Gaussian before gzip against the PLY's 68 (no
-view-dependent SH here; a PLY with degree-3 SH takes 248, where SPZ's "a tenth" comes from).
+"""Niantic's SPZ, the compressed splat file web viewers open, from the Inria PLY's rows (SH degree 0).
 
-Layout (version 3, as nianticlabs/spz documents it; versions 2 and 3 are gzip streams): a 16-byte
-little-endian header (magic 0x5053474e, version, number of points, SH degree, fractional bits, flags,
-reserved), then the attributes of all points in turn: positions as 24-bit signed fixed point,
-alphas (sigmoid of the opacity logit) as 8 bits, colours (the SH DC coefficients, ``dc * 0.15 * 255 +
-127.5``) as 8 bits, scales (``(log scale + 10) * 16``) as 8 bits, and rotations as the smallest three
-components of the unit quaternion (10 bits each, sign and 9-bit magnitude scaled by 1/sqrt(2)) with the
-largest one's index in the top 2 bits of a 32-bit word.
-
-Axes: the rows are written in the PLY's own axes, unconverted. PlayCanvas's splat-transform (which
-SuperSplat builds on) reads SPZ without converting axes, so its SPZ and its PLY of one export coincide;
-Niantic's specification calls SPZ's axes right-up-back, and a reader converting from those to a PLY's
-right-down-forward turns the scene by a half turn about x.
+Version 3 (nianticlabs/spz), gzipped: a 16-byte header (magic 0x5053474e), then each attribute in turn: positions
+24-bit signed fixed point; alphas (sigmoid of the logit), colours (``dc * 0.15 * 255 + 127.5``), scales (``(log
+scale + 10) * 16``) 8 bits; rotations the smallest three quaternion components (10 bits: sign, 9-bit magnitude
+scaled by 1/sqrt(2)), the largest's index in the top 2 bits of 32. Axes: the PLY's, as PlayCanvas's
+splat-transform reads SPZ (Niantic's spec says right-up-back, a half turn about x from the PLY's
+right-down-forward).
 """
 
 from __future__ import annotations

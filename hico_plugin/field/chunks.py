@@ -1,12 +1,10 @@
-"""Anchors grouped into chunks of Morton order, each with conservative bounds, so that a view's
-selection tests the chunks first and then only the anchors of the chunks it may see: a step costs what
-its view sees, not what the model holds (the block culling of CityGS-X and Hierarchical 3DGS).
+"""Anchors grouped into Morton-order chunks with conservative bounds, so a view's selection tests the chunks first
+and then only the anchors of chunks it may see: a step costs what its view sees, not what the model holds (the
+block culling of CityGS-X and Hierarchical 3DGS).
 
-A chunk's bounds are its anchors' box, their largest extent and their smallest level minus the largest
-eps. The chunk tests below only reject a chunk when no anchor inside could pass ``lod_visible`` and
-``frustum_visible``, so the anchors of the remaining chunks, tested one by one with the same rule, are
-exactly the anchors the rule picks over the whole model. Bounds only grow when rows move
-(``expand``); a rebuild tightens them.
+A chunk is rejected only when no anchor inside could pass ``lod_visible`` and ``frustum_visible`` (bounds: the
+anchors' box, their largest extent, smallest level minus largest eps), so the selection is exactly the rule's over
+the whole model. Bounds only grow when rows move (``expand``); a rebuild tightens them.
 """
 
 from __future__ import annotations

@@ -1,33 +1,10 @@
 """Cross-Level Context Aggregation (CLCA, paper Sec. 3.3): f_hat = f + MLP([c_parent; c_self; c_child]).
 
-For the visible anchors of one view, features are pooled per (level, grid cell) into c_self; each
-anchor also reads a parent context from the next coarser level and a child context from the next
-finer one. The parent relation (``ContextConfig.parent_rule``) decides which anchors those are:
-
-- ``"trilinear"`` (default): anchors sit on grid points (octree.py), so a level-l anchor with index k
-  lies at k / b in level-(l-1) index units: on a level-(l-1) grid point where k is even, halfway
-  between two where k is odd. Its parents are the 1, 2, 4 or 8 grid points around k / b with their
-  trilinear weights (0 / 1 or 1/2 per axis for b = 2); c_parent is the weighted mean of the present
-  ones, weights renormalised. A level-l anchor made from a point x (octree.voxelize) always has a
-  level-(l-1) anchor made from the same x among these candidates (x is within v_l / 2 of k v_l, so it
-  rounds to one of them one level up): the levels nest, and densification keeps them nested
-  (``DensifyConfig.keep_ancestors``), so a parent is absent only where LOD or frustum culling hid it.
-  Chosen over cell-centre anchors because it keeps the base method's grid, voxelisation, checkpoints
-  and LOD exactly as they are.
-  A context that is truly absent (coarsest level, no candidate visible, no finer anchor) is a learned
-  ``missing`` vector per role (parent, child), so the MLP can tell "no context" from "same context".
-- ``"paper"``: Eqs. 3-4 taken literally, parent cell ``round((p - o) / v_{l-1})`` on the (possibly
-  drifted) position with torch's round-half-to-even on the .5 ties of odd indices, and the paper's
-  fallback (a missing parent / child reads c_self) for every empty lookup. Kept for the ablation.
-
-The child context uses the same relation ("child of" is the transpose of "parent of"): c_child of a
-cell is the weighted mean of the finer anchors that have it as a parent candidate, with their weights.
-
-The relation itself (which cells, which weights) is context_graph.py's; this module pools features
-along it. Cost per view, O(V + E): on CPU, context_fused.py's compiled kernel builds the view's relation
-(a hash of its cells) and pools along it in one pass each way; elsewhere, a filter of the cached relation
-(the sort over cell keys paid only when an anchor changes cell, context_graph.ContextIndex) and three
-sparse products each way, the reference the kernel is tested against.
+For one view's visible anchors, features are pooled per (level, grid cell) into c_self; each anchor also reads a
+parent context from the next coarser level and a child context (the transposed relation) from the next finer one,
+by ``ContextConfig.parent_rule`` (``context_graph.ParentRule``). Under "trilinear" a truly absent context is a
+learned ``missing`` vector per role, so the MLP can tell "no context" from "same context". Pooling along
+context_graph.py's relation is O(V + E) a view: context_fused.py's kernel on CPU, else sparse products.
 """
 
 from __future__ import annotations

@@ -1,11 +1,10 @@
-"""CLCA's relation and pooling as one compiled CPU kernel: csrc/context_cpu.cpp, a torch extension built
-on first use (``hico_plugin.native``). Where it is not built (no compiler, ``HICO_NO_FUSED=1``, tensors
-on a GPU) context_graph.py's ``ContextIndex`` and context.py's sparse products, the reference, are used.
+"""CLCA's relation and pooling as one compiled CPU kernel: csrc/context_cpu.cpp, a torch extension built on first
+use (``hico_plugin.native``). Where it is not built (no compiler, ``HICO_NO_FUSED=1``, tensors on a GPU)
+context_graph.py's ``ContextIndex`` and context.py's sparse products, the reference, are used.
 
-``view_graph`` returns the ``ContextGraph`` that ``ContextIndex.view`` returns, its cells numbered by first
-appearance instead of by key (no output depends on the numbering); ``pooled_triplet`` is
-``context_triplet``'s MLP input for the "mean" reduce, each absent context already replaced. A view costs a few passes over its anchors and edges, so nothing is
-cached between steps: a training step's anchors drift across cell boundaries every few steps anyway.
+``view_graph`` returns ``ContextIndex.view``'s ``ContextGraph`` with cells numbered by first appearance (no output
+depends on it); ``pooled_triplet`` is ``context_triplet``'s "mean" MLP input, absent contexts replaced. Nothing is
+cached between steps: a view costs a few passes, and training anchors change cells every few steps anyway.
 """
 
 from __future__ import annotations

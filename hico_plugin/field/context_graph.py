@@ -1,17 +1,10 @@
 """Which anchors CLCA's contexts read (paper Eqs. 2-4): the integer structure, apart from the features.
 
-    index = ContextIndex(grid, "trilinear")               # one per field, kept across steps
-    graph = index.view(levels, positions, visible_ids)    # one view's visible anchors
-    fused = aggregator(features, graph)                  # features + CLCA(c_self, c_parent, c_child) (context.py)
-
-The relation depends only on each anchor's level and grid cell, which change when densification adds
-or prunes anchors or an anchor drifts into another cell. ``ContextIndex`` builds it over all anchors
-(the sort over their cell keys) when the anchors change and, while no anchor has changed cell since,
-a view only filters it by visibility (no sort: evaluation, the viewer). Once some anchors have
-drifted into other cells (in training a few do most steps), a view builds the relation of its own
-anchors instead, as cheap as before the cache. The pooled contexts are weighted sums,
-applied as sparse CSR products whose transposes are kept for the backward pass: one pass over the
-edges each way instead of gathering, weighting and scattering [E,d] copies.
+``index = ContextIndex(grid, "trilinear")`` once per field; ``graph = index.view(levels, positions, visible_ids)``
+per view. The relation depends on each anchor's level and cell: the index sorts all anchors' cell keys when they
+change, and while no anchor has changed cell since, a view only filters it by visibility (evaluation, the viewer);
+else a view builds its own anchors' relation. Pooling uses sparse CSR products whose transposes are kept for
+backward: one pass over the edges each way instead of [E,d] copies.
 """
 
 from __future__ import annotations
@@ -28,14 +21,12 @@ from torch import Tensor
 from hico_plugin.field.octree import OctreeGrid
 
 class ParentRule(str, Enum):
-    """Which coarser anchors are an anchor's parents (``ContextConfig.parent_rule``); a str, so configs
-    and the command line name it ``trilinear`` or ``paper``.
+    """Which coarser anchors are an anchor's parents (``ContextConfig.parent_rule``); a str, so configs and the
+    command line name it ``trilinear`` or ``paper``.
 
-    trilinear: anchors sit on grid points, and a level-l anchor's parents are the 1-8 grid points
-    around it at level l-1, with trilinear weights; the levels nest (the lookup reads a tree, which
-    densification keeps), and an absent context is a learned vector. paper: the paper's Eqs. 3-4 taken
-    literally, the one cell round((p - o) / v_{l-1}) of the drifted position, which need not nest, and
-    an empty lookup reads c_self."""
+    trilinear: the 1-8 level-(l-1) grid points around a level-l anchor, with trilinear weights; the levels nest
+    (densification keeps the tree) and an absent context is a learned vector. paper: Eqs. 3-4 literally, the one
+    cell round((p - o) / v_{l-1}) of the drifted position, which need not nest; an empty lookup reads c_self."""
 
     trilinear = "trilinear"
     paper = "paper"

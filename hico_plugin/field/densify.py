@@ -113,14 +113,11 @@ def grow_anchors(positions: Tensor, levels: Tensor, features: Tensor, offsets: T
     """Anchors spawned by high-gradient offsets, all levels at once.
 
     positions [N,3], levels [N], features [N,d], offsets [N,K,3], log_scaling [N,6], grads [N,K]
-    (from ``offset_gradients``), camera_centers [C,3] (for the weed-out of new anchors).
-    An offset of a level-l anchor with tau_l <= g < tau_l x u proposes its Gaussian centre's level-l
-    cell; with g >= tau_l x u (and next-level growth allowed, l < L-1) its level-(l+1) cell. Cells
-    already holding an anchor of that level are dropped, the rest de-duplicated and weeded out by
-    visibility. A new cell's feature is the channel-wise max over its same-level source anchors (zero
-    if only finer-level proposals hit it, as in the base method). blocks [N] bool: the anchors whose
-    cells count as held (default all). limit: keep at most this many new cells, those whose largest
-    proposing gradient is largest (default all).
+    (offset_gradients), camera_centers [C,3] (weed-out); blocks [N] bool: anchors whose cells count as held;
+    limit: at most this many new cells, largest gradient first (default: all). A level-l anchor's offset with
+    tau_l <= g < tau_l x u proposes its Gaussian centre's level-l cell, with g >= tau_l x u (l < L-1, growth
+    allowed) its level-(l+1) cell; held cells dropped, the rest de-duplicated and weeded out by visibility. A new
+    cell's feature is the channel-wise max of its same-level sources, else zero.
     """
     growth = float(grid.fork) ** config.update_ratio
     tau = level_thresholds(levels, grid, config).to(grads)[:, None]
@@ -211,15 +208,11 @@ def close_ancestors(positions: Tensor, levels: Tensor, features: Tensor, keep: T
                     grid: OctreeGrid) -> tuple[Tensor, GrownAnchors]:
     """Give every kept or grown anchor a parent (see ``DensifyConfig.keep_ancestors``).
 
-    positions [N,3], levels [N], features [N,d]: the current anchors; keep [N] bool: survives pruning;
-    grown: the new anchors. Returns (keep [N] with pruned parents revived, grown with new parents
-    appended). A pruned anchor in a candidate parent cell is revived (it keeps its training); an
-    orphan with none gets a new anchor at its highest-weight candidate, whose own parent is then
-    checked in the next round: at most num_levels - 1 rounds.
-
-    Anchors are only added, so an anchor that has a parent keeps it: after the first round (all kept and
-    grown anchors) only the anchors the previous round revived or created can be orphans, and only they
-    are checked -- against every occupied cell.
+    positions [N,3], levels [N], features [N,d]: the current anchors; keep [N] bool: survives pruning; grown: the
+    new anchors. Returns (keep [N] with pruned parents revived, grown with new parents appended). A pruned anchor
+    in a candidate parent cell is revived (keeping its training), else an orphan gets a new anchor at its
+    highest-weight candidate; only the anchors a round revived or created are checked in the next: at most
+    num_levels - 1 rounds.
     """
     keep = keep.clone()
     own_keys = cell_keys(positions, levels, grid)  # [N,4]

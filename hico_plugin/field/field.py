@@ -1,25 +1,10 @@
 """AnchorField: the octree anchors as an nn.Module, with selection, CLCA, decoding and densification.
 
-Use from the model, per view::
-
-    visible_ids = field.select(camera, step)              # step=None at eval: all levels
-    gaussians = field.decode(camera, visible_ids)          # NeuralGaussians (CLCA applied)
-    out = rasterize(gaussians.means, ..., camera.viewmat, camera.K, W, H)
-    ... loss.backward() ...
-    field.accumulate_stats(gaussians, out.means2d.grad, out.radii, camera, step)
-
-and once per step after the optimizer update::
-
-    if field.is_densify_step(step):
-        field.sync_stats(all_reduce_sum_)              # multi-process only
-    for group, (kept_rows, num_new) in field.densify(step).items():
-        optimizers.resize_group(group, field.param_groups()[group], kept_rows, num_new)
-
-``densify`` returns, for every parameter group whose rows changed, ``kept_rows`` ([R] long, rows of
-the old parameter that survive, in order) and ``num_new``: the group's new parameter is exactly
-``cat([old[kept_rows], num_new new rows])``, the shape contract of ``Optimizers.resize_group`` (Adam
-moments carried for kept rows, zeros for new rows). An empty dict means no shape changed. Counts of
-the last adjustment (grown per level, pruned) are in ``field.last_densify``.
+Per view: ``visible_ids = field.select(camera, step)`` (step=None at eval: all levels), ``gaussians =
+field.decode(camera, visible_ids)``, render, backward, ``field.accumulate_stats(gaussians, out.means2d.grad,
+out.radii, camera, step)``. After the optimizer update, on ``field.is_densify_step(step)`` (``sync_stats`` first
+across processes), ``field.densify(step)`` gives per changed group ``(kept_rows [R] long, num_new)``: the new
+parameter is ``cat([old[kept_rows], num_new new rows])`` (``Optimizers.resize_group``'s contract), or {}.
 """
 
 from __future__ import annotations
@@ -120,15 +105,11 @@ class FieldConfig(InstantiateConfig):
 class AnchorField(nn.Module):
     """Octree anchors (N of them) and the networks decoding them into Gaussians.
 
-    Parameters: anchors [N,3] (positions p), offsets [N,K,3] (delta), anchor_features [N,d] (f),
-    log_scaling [N,6] (log s; s[:3] scales the offsets, s[3:] bounds the children's scales).
-    Buffers: levels [N] long, drawn [N] bool (False: an ancestor kept only for CLCA's context, see
-    ``DensifyConfig.draw_ancestors``), extra_level [N] (the paper's "learnable" eps; as in the base code it
-    is adjusted by the densification rule, not by gradients), the statistics
-    (opacity_accum [N], anchor_denom [N], offset_grad_accum [N,K], offset_denom [N,K]), the training
-    camera centres [C,3] (weed-out of new anchors) and the schedule counters. The octree grid
-    (``OctreeGrid``) is saved in the state dict as extra state. The base method's per-anchor rotation
-    and opacity are never trained nor read when decoding, so they are not stored.
+    Parameters: anchors [N,3] (p), offsets [N,K,3], anchor_features [N,d], log_scaling [N,6] (s[:3] scales the
+    offsets, s[3:] bounds the children's scales). Buffers: levels [N] long; drawn [N] bool (False: an ancestor
+    kept only for CLCA, ``DensifyConfig.draw_ancestors``); extra_level [N] (the paper's "learnable" eps, set by
+    the densification rule as in the base code); opacity_accum [N], anchor_denom [N], offset_grad_accum [N,K],
+    offset_denom [N,K]; training camera centres [C,3]; schedule counters; the ``OctreeGrid`` as extra state.
     """
 
     def __init__(self, config: FieldConfig, positions: Tensor, levels: Tensor, grid: OctreeGrid,

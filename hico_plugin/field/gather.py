@@ -1,16 +1,10 @@
 """Row gathers whose backward avoids torch's single-threaded scatter-add.
 
-``source.index_select(0, rows)`` differentiates into ``zeros.index_add_(0, rows, grad)``, which torch
-runs on a CPU as a single-threaded scatter-add: whether rows repeat is not known to it. The decoder's
-gathers (the kept children of the visible anchors, the visible anchors of the field) never repeat, so
-each gradient row only has to be written to its place (``index_copy_``, parallel): on a city-block
-step, a [200k, 7] output's backward 2.0 -> 0.5 ms and a [81k, 32] parameter's 1.2 -> 0.6 ms. Their rows
-also ascend, so the gradient table is written in one pass, each row once, zero or its gradient
-(csrc/segment_cpu.cpp), instead of a zero fill of the whole table followed by the copies.
-
-``repeat_rows`` is the gather whose rows repeat in runs (each kept child reads its anchor's position and
-scaling; a visible anchor's children are consecutive): its backward adds each anchor's children in
-order from zero, index_add_'s sum, with the anchors split among the threads (csrc/segment_cpu.cpp).
+``index_select``'s backward is ``index_add_``, which torch runs single-threaded on a CPU since rows might repeat.
+The decoder's gathers never repeat (``take_rows``), so each gradient row is written to its place in one pass over
+the ascending rows (csrc/segment_cpu.cpp) instead of a zero fill and copies; ``repeat_rows`` (rows repeating in
+runs: each kept child reads its anchor's position and scaling) sums each anchor's children in order from zero,
+index_add_'s sum, the anchors split among threads (timings: benchmarks/RESULTS.md, "Figures behind the defaults").
 """
 
 from __future__ import annotations
@@ -73,10 +67,9 @@ def _library() -> ctypes.CDLL | None:
 
 
 def _placed_rows(grad: Tensor, rows: Tensor, shape: torch.Size) -> Tensor:
-    """zeros(shape).index_copy_(0, rows, grad), bit for bit; in one pass where rows strictly ascend and
-    are wide enough. Rows of 1-3 floats stay with torch (one copy call a row costs what the zero fill
-    saves: [190k, 1] 0.08 -> 0.23 ms, [190k, 3] 0.30 -> 0.29 ms; [190k, 7] 0.62 -> 0.40, [76k, 32]
-    0.83 -> 0.49 ms)."""
+    """zeros(shape).index_copy_(0, rows, grad), bit for bit; in one pass where rows strictly ascend and are wide
+    enough. Rows under 16 bytes (1-3 float32s) stay with torch: one copy call a row costs what the zero fill saves
+    (timings: benchmarks/RESULTS.md, "Figures behind the defaults")."""
     row_bytes = math.prod(shape[1:]) * grad.element_size()
     lib = _library() if grad.device.type == "cpu" and row_bytes >= 16 else None
     if lib is not None:

@@ -1,12 +1,9 @@
-"""How CLCA's lookup fares per octree level, over the visible anchors of a set of views.
+"""How CLCA's lookup fares per octree level over the visible anchors of a set of views: ``lookup_table(field,
+cameras)`` -> [{level, visible, parent_found, ...}, ...].
 
-    table = lookup_table(field, cameras)        # [{level, visible, parent_found, ...}, ...]
-
-Per level l: ``visible`` (anchor-views counted), ``parent_found`` / ``child_found`` (share of them
-whose parent / child context was found; parent is None at level 0, child at the finest level),
-``parent_pooled`` / ``child_pooled`` (mean number of anchors pooled into the context, over the found
-ones) and ``adjustment`` = ||f_hat - f|| / ||f|| over the level's visible anchors (Frobenius norms;
-None while f is zero, i.e. before training moved it).
+Per level: ``visible`` (anchor-views), ``parent_found`` / ``child_found`` (share found; parent None at level 0,
+child at the finest level), ``parent_pooled`` / ``child_pooled`` (mean anchors pooled, over the found ones) and
+``adjustment`` = ||f_hat - f|| / ||f|| over the level's visible anchors (Frobenius; None while f is zero).
 """
 
 from __future__ import annotations

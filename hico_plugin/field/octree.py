@@ -1,11 +1,9 @@
 """The anchor octree: level count and voxel sizes from the cameras, per-level voxelisation, weed-out.
 
-Grid convention (Octree-GS's, the base method of paper Sec. 3.1): level 0 is the coarsest; level ``l`` has
-voxel size ``v_l = voxel_size / fork**l``; a point ``x`` maps to the integer grid index
-``k = round((x - origin) / v_l)`` and the anchor sits on the grid point ``origin + k * v_l``, which is
-the centre of the voxel ``[k - 1/2, k + 1/2) * v_l``. So the paper's ``g_i^l = round((p_i - o) / v_l)``
-gives every anchor exactly its own index ``k``, and the index of its containing level-(l-1) cell is
-``floor(k / 2)`` (see context.py for the parent-rule choice).
+Grid convention (Octree-GS's, the base method of paper Sec. 3.1): level 0 is the coarsest, ``v_l = voxel_size /
+fork**l``; ``x`` maps to ``k = round((x - origin) / v_l)`` and the anchor sits on ``origin + k * v_l``, the centre
+of the voxel ``[k - 1/2, k + 1/2) * v_l``. So the paper's ``g_i^l = round((p_i - o) / v_l)`` gives every anchor
+its own ``k``, and its containing level-(l-1) cell is ``floor(k / 2)`` (the parent-rule choice: context.py).
 """
 
 from __future__ import annotations
@@ -24,13 +22,10 @@ from hico_plugin.nearest import knn
 class OctreeGrid:
     """Everything needed to map positions to cells and levels; saved with the field's state.
 
-    origin:      [3] the cube's minimum corner (grid index 0 at every level)
-    cube_size:   edge length of the enclosing cube (``bbox = origin + [0, cube_size]``)
-    voxel_size:  level-0 (coarsest) voxel size; ``v_l = voxel_size / fork**l``
-    num_levels:  number of octree levels
-    fork:        branching factor b per axis (2 = octree)
-    d_std:       the standard distance of the LOD rule (paper Eq. 1): distance of level 0
-    init_level:  the last level active from the start of training (progressive schedule)
+    origin [3]: the cube's minimum corner (grid index 0 at every level); cube_size: its edge (``bbox = origin +
+    [0, cube_size]``); voxel_size: level-0 (coarsest) voxel size, ``v_l = voxel_size / fork**l``; num_levels;
+    fork: branching factor b per axis (2 = octree); d_std: the standard distance of the LOD rule (paper Eq. 1),
+    level 0's; init_level: the last level active from the start (progressive schedule).
     """
 
     origin: tuple[float, float, float]

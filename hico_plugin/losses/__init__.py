@@ -1,14 +1,10 @@
-"""Losses: photometric (L1 + D-SSIM) and depth-normal geometric consistency (DNGC), and any loss a
-plug-in registers in ``LOSSES``.
+"""Losses: photometric (L1 + D-SSIM), depth-normal geometric consistency (DNGC), and any loss a plug-in registers
+in ``LOSSES``.
 
-A model's losses are configured as ``{name: LossConfig}`` (``default_losses()``: every registered loss
-at its defaults); ``Losses.setup`` builds the enabled ones; the model asks them which render outputs a
-step needs and sums the named terms they return::
-
-    losses = Losses.setup(default_losses(), schedule_scale=run_steps / reference_steps)
-    outputs = rasterize(..., outputs=tuple(losses.required_outputs(step)))
-    terms = losses(outputs, target_rgb, step)      # {"rgb_l1": ..., "rgb_dssim": ..., "dngc_nc": ...}
-    loss = sum(terms.values())
+A model's losses are ``{name: LossConfig}`` (``default_losses()``: every registered loss at its defaults);
+``Losses.setup(configs, schedule_scale=run_steps / reference_steps)`` builds the enabled ones, which name the
+render outputs a step needs (``losses.required_outputs(step)``) and return named terms the model sums
+(``losses(outputs, target_rgb, step)`` -> {"rgb_l1": ..., "rgb_dssim": ..., "dngc_nc": ...}).
 """
 
 from __future__ import annotations

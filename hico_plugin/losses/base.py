@@ -1,12 +1,9 @@
 """The loss component contract and its registry.
 
-A loss is one file that registers its config (a ``LossConfig``: ``enabled`` plus its own options) in
-``LOSSES``; the model's ``losses`` hold one config per name, so every registered loss, a plug-in's too,
-is a ``--model.losses.NAME...`` option. Its component, built by ``setup(schedule_scale=...)`` when the
-loss is enabled, answers two questions per step:
-``required_outputs(step)`` -- which render outputs it reads (so the model renders only those), and
-``__call__(outputs, target, step)`` -- a dict of named, already weighted terms that the model sums and
-logs one by one (an empty dict when the component is inactive at this step).
+A loss is one file registering its ``LossConfig`` (``enabled`` plus its options) in ``LOSSES``, so each, a
+plug-in's too, is a ``--model.losses.NAME...`` option. Its component, built by ``setup(schedule_scale=...)`` when
+enabled, answers per step ``required_outputs(step)`` (the render outputs it reads, so only those are rendered) and
+``__call__(outputs, target, step)`` (a dict of named, already weighted terms; empty when inactive at this step).
 """
 
 from __future__ import annotations

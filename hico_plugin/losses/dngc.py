@@ -1,18 +1,10 @@
 """Depth-Normal Geometric Consistency (HiCo-GS Sec. 3.4): L_nc, edge-aware L_ns / L_ds, warmup w(t).
 
-    L = ... + w(t) (lambda_nc L_nc + lambda_ns L_ns + lambda_ds L_ds),   w(t) = clamp((t - t0) / T, 0, 1)
-
-Readings taken where the paper is silent:
-- alpha in the L_nc weight and the rendered RGB in the edge weights are detached: otherwise the loss
-  could be lowered by making pixels transparent or by sharpening image edges instead of fixing geometry.
-- |grad I| is the per-channel absolute forward difference averaged over RGB (an edge between two
-  colours of equal brightness still counts as an edge).
-- Pixels where n_r or n_d is undefined (zero: nothing drawn, the 1-px border of n_d) are left out of
-  L_nc; in L_ns a forward difference counts only when both of its pixels have a defined n_r, so
-  silhouettes are not penalised as normal jumps. L_ns reads the unit-normalised n_r (its length is
-  alpha, which smoothness must not constrain); both L_ns and L_ds take the spatial mean over all
-  difference positions (and over the 3 normal channels for L_ns).
-- d is kept in scene units as the paper has it, so lambda_ds is scale-dependent; the term is logged.
+L = ... + w(t) (lambda_nc L_nc + lambda_ns L_ns + lambda_ds L_ds), w(t) = clamp((t - t0) / T, 0, 1). Where the
+paper is silent: alpha (L_nc's weight) and RGB (edge weights) are detached, so transparency or sharper edges
+cannot lower it; |grad I| is the RGB mean of absolute forward differences; L_nc skips pixels of undefined n_r or
+n_d, and L_ns counts a difference only between two defined n_r (no silhouette penalty); L_ns reads unit n_r (its
+length is alpha); L_ns and L_ds are spatial means; d stays in scene units, so lambda_ds is scale-dependent.
 """
 
 from __future__ import annotations

@@ -1,17 +1,9 @@
 """Geometry out: TSDF mesh extraction from a trained model and surface metrics against ground truth.
 
-Public API::
-
-    MeshExportConfig(...).run(loaded_run) -> Path              # hico-export target (.model/.dataset/.run_dir)
-    MeshExportConfig(...).run_config(config_path, checkpoint=None, device=None) -> Path
-    MeshExportConfig(...).export(model, dataset, run_dir) -> Path
-    extract_mesh(model, dataset, config: MeshExportConfig) -> TriangleMesh         # COLMAP frame
-    fuse_tsdf(depths, colors, cameras, voxel_size, sdf_trunc, max_depth, min_weight=1.0) -> TriangleMesh
-    multiview_depth_filter(depths [C, H, W], cameras, ...) -> [C, H, W] bool
-    clean_mesh(mesh, min_component_triangles) -> TriangleMesh
-    evaluate_surface(mesh, gt_points [M, 3]) -> SurfaceMetrics                     # tau = 1.5 x GT spacing
-    surface_results(dataset, mesh_path) -> dict   # hico-eval: surface_precision/recall/f1/chamfer/tau
-    write_ply(path, mesh) / read_ply(path)
+Public API: ``MeshExportConfig`` (``run(loaded_run)``, ``run_config(config_path, ...)``, ``export(model, dataset,
+run_dir)`` -> Path; the hico-export target), ``extract_mesh`` (COLMAP frame), ``fuse_tsdf``,
+``multiview_depth_filter``, ``clean_mesh``, ``evaluate_surface(mesh, gt_points [M, 3])`` (tau = 1.5 x GT spacing),
+``surface_results`` (hico-eval's surface_precision/recall/f1/chamfer/tau), ``write_ply`` / ``read_ply``.
 """
 
 from hico_plugin.mesh.evaluate import evaluate_surface, sample_surface, surface_results

@@ -55,14 +55,12 @@ def nearest_views(cameras: Cameras, num_neighbours: int) -> Tensor:
 
 def multiview_depth_filter(depths: Tensor, cameras: Cameras, num_neighbours: int = 8, min_consistent: int = 2,
                            max_reprojection_px: float = 1.0, max_relative_depth: float = 0.01) -> Tensor:
-    """Which pixels have a depth that neighbour views confirm.
+    """Which pixels have a depth that neighbour views confirm (geometric consistency as in MVS fusion).
 
-    A pixel of view i is consistent with neighbour j when its point, projected into j, lands inside j on
-    a valid depth whose own point, projected back into i, is within ``max_reprojection_px`` pixels of
-    the start and within ``max_relative_depth`` of its depth (geometric consistency as in MVS fusion).
-    A pixel is kept when at least ``min_consistent`` of its ``num_neighbours`` nearest views agree.
-
-    depths: [C, H, W] camera z (0 = none) for ``cameras`` (all of size W x H); returns [C, H, W] bool.
+    depths: [C, H, W] camera z (0 = none) for ``cameras`` (all of size W x H); returns [C, H, W] bool. A pixel
+    agrees with neighbour j when its point lands inside j on a valid depth whose own point, projected back, is
+    within ``max_reprojection_px`` pixels of the start and ``max_relative_depth`` of its depth; it is kept when at
+    least ``min_consistent`` of its ``num_neighbours`` nearest views agree.
     """
     num_views, height, width = depths.shape
     if num_views < 2:

@@ -40,12 +40,10 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
 def ssim(pred: Tensor, target: Tensor) -> Tensor:
     """Structural similarity (pytorch-msssim; 11x11 Gaussian window, sigma 1.5, K = (0.01, 0.03)).
 
-    pred, target: [H, W, C] or [B, H, W, C] in [0, 1]. Returns [] (or [B]). Differentiable, so the
-    photometric loss uses it too. float32 / float64 CPU images whose target needs no gradient go through
-    the fused C++ kernel ``ssim_fused`` (pytorch-msssim's values and gradient w.r.t. pred, to float
-    rounding, in one pass each way); the rest, or everything when the kernel cannot be built, through
-    pytorch-msssim itself. pytorch-msssim filters with 'valid' borders where the 3DGS reference
-    zero-pads; the two differ only in a window-wide band at the image border.
+    pred, target: [H, W, C] or [B, H, W, C] in [0, 1]. Returns [] (or [B]); differentiable, so the photometric
+    loss uses it too. float32 / float64 CPU images whose target needs no gradient use the fused C++ kernel
+    ``ssim_fused`` (same values and gradient w.r.t. pred, to float rounding), the rest pytorch-msssim. Its 'valid'
+    borders differ from the 3DGS reference's zero padding only in a window-wide band at the border.
     """
     pred_b, target_b, batched = _as_batch(pred, target, "ssim")
     fused = (pred_b.device.type == "cpu" and pred_b.dtype in (torch.float32, torch.float64)

@@ -176,17 +176,13 @@ BAND_ELEMENTS = 2 * 2**20
 
 
 class LPIPS(nn.Module):
-    """LPIPS v0.1 distance: backbone features, unit-normalised per channel, squared difference,
-    learned 1x1 channel weights, spatial mean, summed over the five taps.
+    """LPIPS v0.1 distance: unit-normalised backbone features, squared difference, learned 1x1 channel weights,
+    spatial mean, summed over the five taps.
 
-    Call with pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]; returns [] or [B]. ``to_signed``
-    maps [0, 1] to [-1, 1] first, as the LPIPS project specifies; False feeds [0, 1] straight in, as
-    the 3DGS / CityGS-X metric scripts do (their published LPIPS numbers are on that scale).
-
-    ``weights`` maps "conv{i}.weight" / "conv{i}.bias" (OIHW) and "head{j}.weight" to arrays; the
-    heads are copied in, the conv arrays are read from it at every call (``NpzWeights`` reads them
-    from disk). VGG's first layers run in row bands with the halo each band's rows need, so their
-    activations never exist for the whole image (a 540x960 pair's first block is 530 MB).
+    pred, target: [H, W, 3] or [B, H, W, 3] in [0, 1]; returns [] or [B]. ``to_signed`` maps to [-1, 1] first, as
+    the LPIPS project specifies; False feeds [0, 1] in, as the 3DGS / CityGS-X metric scripts do. ``weights`` maps
+    "conv{i}.weight" / "conv{i}.bias" (OIHW) and "head{j}.weight" to arrays: heads copied in, convs read at every
+    call (``NpzWeights`` reads them from disk). VGG's first layers run in row bands, never whole-image.
     """
 
     def __init__(self, net: str, weights: Mapping[str, np.ndarray]):

@@ -1,11 +1,9 @@
 """Fused CPU SSIM: csrc/ssim_cpu.cpp, a plain C++ library built on first use (``hico_plugin.native``).
 
-``ssim_fused`` has the contract of ``metrics.image.ssim`` and computes what pytorch-msssim computes there
-(11-tap Gaussian window, sigma 1.5, K = (0.01, 0.03), 'valid' borders), forward and gradient w.r.t. the
-prediction in one pass each instead of five depthwise convolutions and their autograd graph. Results are
-bitwise independent of the thread count. Along a dimension shorter than the window pytorch-msssim skips
-the smoothing (with a warning); so does this kernel, with the same warning, down to one pixel (where
-pytorch-msssim squeezes the dimension away and refuses the image).
+``ssim_fused`` has ``metrics.image.ssim``'s contract and pytorch-msssim's values (11-tap Gaussian window, sigma
+1.5, K = (0.01, 0.03), 'valid' borders), forward and gradient w.r.t. the prediction in one pass each, bitwise
+independent of the thread count. Along a dimension shorter than the window it skips the smoothing with
+pytorch-msssim's warning, down to one pixel (which pytorch-msssim refuses).
 """
 
 from __future__ import annotations

@@ -1,15 +1,9 @@
 """HiCoModel: the anchor field, the renderer and the losses, and what each training step renders.
 
-One view, as the model runs it::
-
-    visible_ids = field.select(camera, step)             # LOD (Eq. 1) + frustum culling
-    gaussians   = field.decode(camera, visible_ids)      # CLCA (Sec. 3.3) + neural Gaussian MLPs
-    outputs     = renderer(gaussians..., outputs=required_outputs(step))
-    terms       = losses(outputs, target, step)          # L1 + D-SSIM, DNGC once w(t) > 0 (Sec. 3.4)
-
-"Compute only what the step calls for": the renderer is asked for the union of what the loss
-components read at this step, so before DNGC's t0 it composites RGB alone and no geometry buffer is
-ever allocated.
+Per view: ``field.select`` (LOD, Eq. 1, + frustum culling), ``field.decode`` (CLCA, Sec. 3.3, + neural Gaussian
+MLPs), the renderer, then the losses (L1 + D-SSIM, DNGC once w(t) > 0, Sec. 3.4). The renderer is asked only for
+what the step's loss components read, so before DNGC's t0 it composites RGB alone and allocates no geometry
+buffer.
 """
 
 from __future__ import annotations

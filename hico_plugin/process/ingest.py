@@ -1,12 +1,9 @@
 """Photos as users hand them over -> files that SfM and training decode to the same pixels.
 
-Phones store many photos sideways with an EXIF orientation tag that viewers apply and COLMAP does not;
-downloads mix grayscale, 16-bit and transparent PNGs, CMYK JPEGs, empty, truncated and mislabelled files.
-Each photo is normalised once on the way in: turned upright (the tag applied, then cleared), converted
-to 8-bit RGB, its transparency kept as a mask (white = scene) — and copied byte for byte when it needs
-none of that. A file that is not a readable image is skipped with the reason, and the rest go on.
-The other EXIF tags (make, model, focal length, GPS position) are kept: SfM starts from the focal length
-they give, and photos with a GPS position are matched with their nearest (matching.py).
+Each photo is normalised once: turned upright (the EXIF orientation, which COLMAP ignores, applied and cleared),
+8-bit RGB, its transparency kept as a mask (white = scene), or copied byte for byte when it needs none of that; an
+unreadable file is skipped with the reason. Other EXIF tags are kept: SfM starts from their focal length, and
+photos with a GPS position are matched with their nearest (matching.py).
 """
 
 from __future__ import annotations

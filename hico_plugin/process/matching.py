@@ -1,12 +1,10 @@
 """The matching stage: which photo pairs are matched, chosen from the photos, and their matching (pycolmap).
 
-Exhaustive matching compares n (n - 1) / 2 pairs: its cost grows with the square of the photos. Above
-``--exhaustive-max`` photos ``--matcher auto`` pairs every photo with a bounded number of others, so the
-cost grows linearly: ordered video frames with their next frames (COLMAP's sequential pairing, with loop
-detection), photos with GPS in their EXIF with their nearest by position (spatial), the others with the
-photos most like them by a vocabulary tree (retrieval; Nister & Stewenius, CVPR 2006), built from the
-photos' own SIFT features unless ``--vocab-tree`` names one. The pairs are matched in blocks, a progress
-step each; COLMAP skips a pair whose matches the database holds, so a stopped stage resumes where it was.
+Exhaustive matching grows with the square of the photos; above ``--exhaustive-max`` ``--matcher auto`` pairs each
+photo with a bounded number of others: video frames with their next (sequential, with loop detection), photos with
+GPS with their nearest (spatial), the rest with the most alike by a vocabulary tree (Nister & Stewenius, CVPR
+2006; built from their own SIFT unless ``--vocab-tree``). Pairs are matched in blocks, and COLMAP skips those the
+database holds, so a stopped stage resumes where it was.
 """
 
 from __future__ import annotations

@@ -1,13 +1,9 @@
 """Structure from motion on pycolmap 4: SIFT features, matching, mapping, undistortion, downscales.
 
-Output layout (what ``--data OUT`` trains on, nerfstudio's folder names)::
-
-    OUT/images/            pinhole images of the registered views (undistorted, or as taken when
-                           their camera's distortion moves no pixel by more than half a pixel)
-    OUT/images_{2,4,8}/    the same, downscaled by 2, 4, 8
-    OUT/sparse/0/          the pinhole COLMAP model
-    OUT/colmap/            work files: input images, database.db, the distorted models
-    OUT/process.json       the summary printed at the end
+Output (what ``--data OUT`` trains on, nerfstudio's folder names): ``OUT/images/`` (pinhole images of the
+registered views, undistorted or as taken when no pixel moves by over half a pixel), ``OUT/images_{2,4,8}/``
+(downscaled), ``OUT/sparse/0/`` (the pinhole COLMAP model), ``OUT/colmap/`` (input images, database.db, the
+distorted models) and ``OUT/process.json`` (the summary printed at the end).
 """
 
 from __future__ import annotations

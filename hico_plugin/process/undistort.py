@@ -1,14 +1,10 @@
 """The undistort stage: registered photos -> OUT/images, OUT/masks and the PINHOLE model OUT/sparse/0.
 
-Resampling blurs: the bilinear lookup of an image undistorter is a low-pass filter (Parker, Kenyon &
-Troxel, "Comparison of interpolating methods for image resampling", IEEE TMI 1983). A camera whose
-distortion moves no pixel by more than ``keep_below_px`` (``KEEP_BELOW_PX``, half a pixel, unless
-asked otherwise) therefore keeps its photos as the ingest stage wrote them and is written as PINHOLE
-with its own focal lengths and principal point (the dropped distortion is below what a pixel
-resolves); the other cameras go through COLMAP's image undistorter. ``keep_below_px`` 0 resamples
-every camera with any distortion, so the cost of resampling can be measured on the same
-reconstruction. Everything is written to temporary folders first, so a crash leaves no half-written
-dataset behind.
+Resampling blurs (an undistorter's bilinear lookup is a low-pass filter: Parker, Kenyon & Troxel, "Comparison of
+interpolating methods for image resampling", IEEE TMI 1983), so a camera whose distortion moves no pixel by more
+than ``keep_below_px`` (``KEEP_BELOW_PX``, half a pixel) keeps its ingested photos and is written PINHOLE with its
+own focal lengths and principal point; the others go through COLMAP's undistorter (``keep_below_px`` 0 resamples
+all). Output goes to temporary folders first, so a crash leaves no half-written dataset behind.
 """
 
 from __future__ import annotations

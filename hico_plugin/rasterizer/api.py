@@ -28,17 +28,12 @@ def rasterize(
 ) -> RenderOutputs:
     """Render Gaussians into one camera (viewmat [4,4], K [3,3]) or C cameras ([C,4,4], [C,3,3]).
 
-    means [N,3]; quats [N,4] (w,x,y,z, any norm, zero = identity); scales [N,3] (linear);
-    opacities [N] in [0,1]; colors [N,D] (any D); background [D] or None (black).
-    ``outputs`` is any subset of rgb, alpha, depth, normal, distance, plane_depth, depth_normal
-    (see RenderOutputs); only what is asked is computed. ``depth_normal_from`` picks the depth map
-    that ``depth_normal`` differentiates ("plane_depth" or "depth"). ``tile_size`` 0 = the backend's
-    own. ``backend`` is a registered name or a RasterizerBackend already built (RendererConfig binds
-    one). For a name, ``compositor`` picks the torch backend's binning and blending kernels: "fused"
-    (compiled C++ on CPU, early termination per pixel), "torch" (vectorised torch, any device) or
-    "auto" (the default: fused on CPU when it builds), and ``use_compile`` fuses the torch compositor
-    with torch.compile (None: on unless HICO_NO_COMPILE=1; the first call compiles).
-    Images come back [H,W,·] (or [C,H,W,·]); means2d [N,2] ([C,N,2]) and radii [N] ([C,N]).
+    means [N,3]; quats [N,4] (w,x,y,z, any norm, zero = identity); scales [N,3] (linear); opacities [N] in [0,1];
+    colors [N,D]; background [D] or None (black). ``outputs``: any subset of rgb, alpha, depth, normal, distance,
+    plane_depth, depth_normal; ``depth_normal_from``: "plane_depth" or "depth"; ``tile_size`` 0: the backend's.
+    ``backend``: a name or a built RasterizerBackend; for a name, ``compositor`` "fused" / "torch" / "auto" (fused
+    on CPU when it builds) and ``use_compile`` torch.compiles the torch one (None: unless HICO_NO_COMPILE=1).
+    Returns images [H,W,·] ([C,H,W,·]), means2d [N,2] ([C,N,2]), radii [N] ([C,N]).
     """
     outputs = frozenset(outputs)
     _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, outputs,

@@ -1,25 +1,12 @@
-"""What every rasterizer backend shares: the output record, the option names and defaults, and the
-backend contract with its registry.
+"""What every rasterizer backend shares: the output record, the option names and defaults, the backend contract.
 
-``rasterize`` validates the inputs, packs the per-Gaussian channels (colour, camera-space normal,
-plane distance, camera z) and derives the maps (expected depth, plane depth, depth normal); a backend
-only projects and composites. It is a ``RasterizerBackend`` subclass registered in
-``RASTERIZER_BACKENDS`` and built once with the options of the blending kernels::
-
-    backend = RASTERIZER_BACKENDS.get("torch")(compositor="auto", use_compile=True)
-    projected = backend.project(means [N,3], quats [N,4], scales [N,3], opacities [N],
-                                viewmats [C,4,4], Ks [C,3,3], width, height, near, far, normals=False)
-    image [C,H,W,D], alpha [C,H,W,1] = backend.composite(projected, means2d [C,N,2], opacities [N],
-                                                          features [C,N,D], width, height, tile_size)
-
-``projected`` has at least ``means_cam`` [C,N,3], ``means2d`` [C,N,2], ``depths`` [C,N] (camera z) and
-``radii`` [C,N] (int, 0 = culled), and ``normals`` / ``distances``: None, or with ``normals=True`` a backend
-that computes them with its projection sets them to ``geometry.gaussian_normals``' [C,N,3] / [C,N]
-(``rasterize`` computes them from ``means_cam`` otherwise); anything else on it is the backend's own. ``composite`` must blend
-from the ``means2d`` it is handed, not ``projected.means2d``: with a single camera ``rasterize`` hands
-out ``projected.means2d[0]`` and renders from ``means2d[0][None]``, so that ``retain_grad()`` on the
-returned ``means2d`` collects the screen-space gradients used for densification. D may be 0 (an
-alpha-only render).
+``rasterize`` validates, packs the per-Gaussian channels and derives the maps; a backend (a ``RasterizerBackend``
+in ``RASTERIZER_BACKENDS``) only projects and composites. ``project(means, quats, scales, opacities, viewmats, Ks,
+width, height, near, far, normals=False)`` gives at least ``means_cam`` [C,N,3], ``means2d`` [C,N,2], ``depths``
+[C,N], ``radii`` [C,N] (int, 0 = culled), ``normals`` / ``distances`` (None, or with ``normals=True``
+``geometry.gaussian_normals``' [C,N,3] / [C,N]); ``composite(projected, means2d [C,N,2], opacities [N], features
+[C,N,D], width, height, tile_size)`` -> image [C,H,W,D] (D may be 0), alpha [C,H,W,1], blending the ``means2d``
+handed in so its ``retain_grad()`` collects densification's gradients.
 """
 
 from __future__ import annotations

@@ -1,15 +1,10 @@
 """Front-to-back alpha compositing of binned Gaussians, in bounded-memory chunks of tiles.
 
-Every (pixel-of-a-tile, intersection) pair is one element of a [tile_size^2, R] block (R = the
-chunk's intersections in (tile, depth) order); transmittance is a per-tile cumulative sum of
-log(1 - alpha) along R, so the early stop (T < 1e-4) is a mask instead of a loop, and the per-tile
-sums of weight x feature are one sparse (CSR) matmul. The autograd Function keeps only its inputs and recomputes
-each chunk in backward, so peak memory is one chunk's pairs, not image size x Gaussian count.
-
-The backward recomputes only the rows that matter: a row whose alpha is 0 at every pixel of its tile
-adds log(1 - 0) = 0 to every transmittance, and rows after the last row that draws any pixel of the
-tile cannot change an earlier weight (the sum is causal), so dropping both kinds leaves every weight
-and every gradient as it was -- and behind opaque surfaces most rows are of the second kind.
+Each (pixel-of-a-tile, intersection) pair is an element of a [tile_size^2, R] block (R in (tile, depth) order):
+transmittance is a per-tile cumulative sum of log(1 - alpha), the early stop (T < 1e-4) a mask, the weighted
+feature sums one sparse (CSR) matmul. Backward recomputes each chunk from the inputs (peak memory: one chunk's
+pairs), and only the rows that matter: zero-alpha rows and rows after a tile's last drawing row change no weight
+or gradient (the sum is causal), and behind opaque surfaces most rows are of the second kind.
 """
 
 from __future__ import annotations
@@ -77,15 +72,11 @@ def composite_chunk(means2d: Tensor, conics: Tensor, opacities: Tensor, features
                     needed_rows: list[Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Composite one chunk of S consecutive tiles holding R intersections.
 
-    means2d [G,2], conics [G,3], opacities [G], features [G,D] (G flattened Gaussians);
-    gaussian_ids [R]; seg_ids [R] tile of each row within the chunk (non-decreasing);
-    seg_starts [S] first row of each tile; tile_x, tile_y [S] pixel origin of each tile;
-    pix_x, pix_y [P] pixel-centre offsets inside a tile. Returns features [S,P,D] and alpha [S,P].
-    When ``needed_rows`` is a list, the indices [R'] (into the R rows) of the rows a backward pass
-    must recompute are appended to it (see the module docstring).
-
-    Pairs are laid out [P,R] (pixel-major) so that the cumulative sum and the segment sums run
-    along the contiguous last dimension -- about 10x faster on CPU than along rows.
+    means2d [G,2], conics [G,3], opacities [G], features [G,D] (G flattened Gaussians); gaussian_ids [R]; seg_ids
+    [R] tile of each row within the chunk (non-decreasing); seg_starts [S] first row of each tile; tile_x, tile_y
+    [S] pixel origin of each tile; pix_x, pix_y [P] pixel-centre offsets inside a tile. Returns features [S,P,D]
+    and alpha [S,P]. A list ``needed_rows`` gets the indices [R'] of the rows a backward must recompute. Pairs are
+    [P,R] (pixel-major) so the sums run along the contiguous last dimension.
     """
     alpha_fn, weight_fn = KERNELS.get(use_compile)
     mean = means2d[gaussian_ids]

@@ -1,12 +1,9 @@
-"""The fused CPU kernels: csrc/composite_cpu.cpp, a torch extension built on first use
-(``hico_plugin.native``; needs a C++ compiler, as torch.compile on CPU does). When it cannot be built the
-renderer uses the torch compositor, saying so in one line.
+"""The fused CPU kernels: csrc/composite_cpu.cpp, a torch extension built on first use (``hico_plugin.native``;
+needs a C++ compiler, as torch.compile on CPU does); without it the renderer uses the torch compositor, saying so.
 
-``composite_fused`` has the contract of ``composite.composite`` (the vectorised torch version, which
-stays the reference and the fallback): one pass per pixel with early termination instead of every
-(pixel, row) pair of the tile, so deep tiles cost what is visible, not what is binned.
-``bin_gaussians_fused`` returns exactly what ``tiling.bin_gaussians`` does, without the
-intermediate tensors of every candidate (Gaussian, tile) pair.
+``composite_fused`` has ``composite.composite``'s contract (the reference and fallback) in one pass per pixel with
+early termination, so deep tiles cost what is visible, not what is binned; ``bin_gaussians_fused`` returns exactly
+what ``tiling.bin_gaussians`` does without the tensors of every candidate (Gaussian, tile) pair.
 """
 
 from __future__ import annotations

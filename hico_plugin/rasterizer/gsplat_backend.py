@@ -1,19 +1,10 @@
-"""The "gsplat" rasterizer backend: gsplat's CUDA projection and blending behind the backend contract
-(base.py); ``rasterize`` packs the geometry channels and derives the maps, as for every backend. The
-projection is gsplat's ``fully_fused_projection`` given the opacities, so the drawn extent is
-opacity-aware like the torch backend's (gsplat's radii are per axis, [C,N,2]; the RenderOutputs
-contract keeps their maximum, [C,N]).
+"""The "gsplat" rasterizer backend: gsplat's CUDA projection and blending behind the backend contract (base.py).
 
-Conventions checked against gsplat's pure-torch reference (tests/rasterizer/test_gsplat_backend.py): camera z,
-projected centres (pixel centres at +0.5) and conics agree to rounding, with the same 0.3 px^2 blur,
-frustum-widened Jacobian clamp and near/far culling. Differences: the reference's radius is
-ceil(3.33 sigma) per axis, ours ceil(sqrt(2 ln(255 o)) sigma) of the larger axis (3.329 sigma at o = 1,
-smaller for fainter Gaussians); the reference keeps an ellipse whose integer radius touches the image
-where ours, testing the exact extent, may cull it (< 1 px of difference); ours also culls o <= 1/255.
-
-Needs gsplat (``pip install -e ".[cuda]"``), a CUDA torch and CUDA tensors; otherwise it raises one
-HicoError naming the fix. gsplat's kernels are float32 only. ``use_compile`` and ``compositor``
-(the torch backend's blending kernels) have no meaning here; the default tile edge is 16.
+``fully_fused_projection`` gets the opacities, so the extent is opacity-aware (per-axis radii [C,N,2] kept as
+their maximum, [C,N]). As gsplat's pure-torch reference: camera z, centres, conics, 0.3 px^2 blur, Jacobian clamp,
+near/far culling; its radius is ceil(3.33 sigma) per axis, ours ceil(sqrt(2 ln(255 o)) sigma) of the larger axis,
+and ours culls o <= 1/255. Needs gsplat (``pip install -e ".[cuda]"``), CUDA torch and tensors, float32 (else one
+HicoError); ``use_compile`` and ``compositor`` mean nothing here; default tile edge 16.
 """
 
 from __future__ import annotations

@@ -77,12 +77,10 @@ def project_gaussians(
 ) -> Projection:
     """Project Gaussians into C cameras.
 
-    means [N,3], quats [N,4] (w,x,y,z), scales [N,3] (linear), opacities [N] in [0,1],
-    viewmats [C,4,4] world->camera, Ks [C,3,3].
-
-    Culled (radius 0): centre z <= near or >= far, opacity <= 1/255, or an ellipse that misses the
-    image. The extent is opacity-aware: the ellipse o * exp(-r^2/2) >= 1/255 (r = Mahalanobis
-    distance), so nothing above the compositing cut is dropped (gsplat's 3 sigma is o = 1, ~3.33).
+    means [N,3], quats [N,4] (w,x,y,z), scales [N,3] (linear), opacities [N] in [0,1], viewmats [C,4,4]
+    world->camera, Ks [C,3,3]. Culled (radius 0): centre z <= near or >= far, opacity <= 1/255, or an ellipse that
+    misses the image. The extent is opacity-aware, o * exp(-r^2/2) >= 1/255 (r the Mahalanobis distance), so
+    nothing above the compositing cut is dropped (gsplat's 3 sigma is o = 1, ~3.33).
     """
     means_cam = world_to_camera(means, viewmats)  # [C,N,3]
     x, y, z = means_cam.unbind(-1)

@@ -1,11 +1,10 @@
 """Fused CPU projection of Gaussians: csrc/projection_cpu.cpp, a plain C++ library built on first use
 (``hico_plugin.native``).
 
-``project_gaussians_fused`` computes what ``projection.project_gaussians`` (the torch reference, used wherever this
-kernel is not) computes, and optionally ``geometry.gaussian_normals`` of its camera-space centres: values and
-gradients to float rounding with every masking and clamping rule, in one pass per (Gaussian, camera) each way
-instead of a few hundred elementwise torch ops and the autograd graph that keeps their intermediates. The backward
-recomputes what it needs from the inputs. Results are bitwise independent of the thread count.
+``project_gaussians_fused`` computes what ``projection.project_gaussians`` (the torch reference, used wherever
+this kernel is not) computes, optionally with ``geometry.gaussian_normals``: values and gradients to float
+rounding, in one pass per (Gaussian, camera) each way instead of a few hundred torch ops and their autograd graph
+(backward recomputes from the inputs). Results are bitwise independent of the thread count.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
-"""``district``: city-block's buildings over a large grid of blocks, with three landmarks (a tower, a
-domed church with a spire, a long low hall), captured as the aerial datasets of the paper are
-(Mill19: a drone flying a grid over the site) plus street-level passes.
+"""``district``: city-block's buildings over a large grid of blocks with three landmarks (a tower, a domed church
+with a spire, a long low hall), captured as the paper's aerial datasets are (Mill19's drone grid) plus streets.
 
-The drone flies a serpentine (lawnmower) path over the blocks at one altitude and shoots, at every
-waypoint, a nadir view and four obliques looking along +x, +y, -x and -y (the street grid's
-directions), as a penta camera does; the street views walk some of the interior streets from a
-pedestrian's height to a pole's, looking along them and at the facades.
+The drone flies a serpentine path at one altitude, shooting at each waypoint a nadir view and four obliques along
++x, +y, -x and -y (a penta camera); the street views walk some interior streets from a pedestrian's height to a
+pole's, looking along them and at the facades.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """Generate a built-in scene as a COLMAP dataset with exact ground truth, cached on disk.
 
-Layout written (read by hico_plugin.data)::
-
-    DIR/images/<name>.png
-    DIR/sparse/0/{cameras,images,points3D}.bin
-    DIR/ground_truth/depth/<stem>.npy    float32 [H, W] camera z, 0 = no surface
-    DIR/ground_truth/normal/<stem>.npy   float32 [H, W, 3] unit camera-frame normals facing the camera
-    DIR/ground_truth/surface_points.npy  float32 [M, 3] dense visible-surface samples, world frame
-    DIR/scene.json                       name, parameters, declared + enabled effects, timings
+Layout (read by hico_plugin.data): ``DIR/images/<name>.png``, ``DIR/sparse/0/{cameras,images,points3D}.bin``,
+``DIR/ground_truth/depth/<stem>.npy`` (float32 [H, W] camera z, 0 = no surface),
+``ground_truth/normal/<stem>.npy`` (float32 [H, W, 3] unit camera-frame normals facing the camera),
+``ground_truth/surface_points.npy`` (float32 [M, 3] dense visible-surface samples, world frame),
+``DIR/scene.json`` (name, parameters, declared + enabled effects, timings).
 """
 
 from __future__ import annotations

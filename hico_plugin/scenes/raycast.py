@@ -1,12 +1,9 @@
 """Analytic ray caster: convex polyhedra, solids of revolution (cylinders, cones, frusta) and spheres.
 
-Independent of the Gaussian rasterizer on purpose: the built-in scenes are the ground truth the
-rasterizer is measured against. Everything is numpy float64, vectorised over rays; the only Python
-loop is over scene primitives (tens), each tested only against the rays that can reach it: camera
-rays inside the pixel rectangle of its projected hull, shadow rays inside its silhouette rectangle
-seen from the sun.
-
-Shapes: ``origins``/``dirs``: [R, 3] (dirs unit length), ``t``: [R] (``inf`` = miss).
+Independent of the Gaussian rasterizer on purpose: the built-in scenes are the ground truth it is measured
+against. numpy float64, vectorised over rays; each primitive is tested only against the rays that can reach it
+(camera rays inside its projected hull's pixel rectangle, shadow rays inside its silhouette rectangle from the
+sun). Shapes: ``origins``/``dirs``: [R, 3] (dirs unit length), ``t``: [R] (``inf`` = miss).
 """
 
 from __future__ import annotations

@@ -54,15 +54,13 @@ def visibility(points: np.ndarray, depths: np.ndarray, viewmats: np.ndarray, K: 
 
 
 class FeatureSampler:
-    """Sample ~``count`` points like SfM would find them, one view at a time: ``propose`` as each view
-    is rendered, ``finish`` once all are, reading the depth maps back in chunks, so that no more than
-    one image and a chunk of depth maps are ever in memory.
+    """Sample ~``count`` points as SfM would, one view at a time, holding one image and a chunk of depth maps.
 
-    viewmats: [C, 4, 4]. Each view proposes pixels with probability proportional to image gradient
-    magnitude (features live on texture and edges, and none where the 1 px-blurred grey gradient is
-    below ``min_gradient`` levels per pixel); a proposal is kept when at least one other view sees its
-    surface point unoccluded. Tracks list up to ``max_track`` observing views (the proposing view
-    first); keypoints get 0.5 px noise and positions ``position_noise`` x distance noise."""
+    ``propose`` as each view is rendered, ``finish`` once all are; viewmats: [C, 4, 4]. Pixels are proposed in
+    proportion to image gradient magnitude (none where the 1 px-blurred grey gradient is below ``min_gradient``
+    levels per pixel) and kept when another view sees their surface point unoccluded; tracks list up to
+    ``max_track`` views (proposer first); keypoints get 0.5 px noise, positions ``position_noise`` x distance
+    noise."""
 
     def __init__(self, viewmats: np.ndarray, K: np.ndarray, count: int, position_noise: float, seed: int,
                  max_track: int = 12, min_gradient: float = 0.0, chunk_elements: int = 1 << 18):

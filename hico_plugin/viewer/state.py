@@ -1,23 +1,10 @@
 """What the viewer reads from the training side, and the adapter that provides it from a run.
 
-Two protocols make the boundary:
-
-``ViewableModel`` — what a model offers the viewer (HiCoModel implements it)::
-
-    render_for_display(camera: Camera, options: RenderOptions) -> Mapping[str, Tensor]
-        # at least options.required_outputs, RenderOutputs names and shapes (rgb [H,W,3],
-        # depth / plane_depth / distance / alpha / level [H,W,1], normal / depth_normal [H,W,3]),
-        # honouring options.level_range, options.distance_scale and options.clca_enabled; called
-        # under torch.no_grad() with the render lock held.
-    viewer_anchors() -> tuple[Tensor, Tensor]   # positions [A, 3], levels [A] (int)
-    viewer_parent_found() -> Tensor             # optional: [A] bool, CLCA found a parent (overlay)
-
-``ViewerState`` — everything else the viewer shows or controls (``RunViewerState`` implements it for
-a model + dataset, with or without a Trainer).
-
-Lock contract: the viewer holds ``render_lock`` for exactly one render (or one anchor read) at a time
-and, while training runs unpaused, does not take it again before ``step`` has advanced; the trainer
-holds the same lock for each training step. So training waits for at most one render per step.
+``ViewableModel``: ``render_for_display(camera, options) -> Mapping[str, Tensor]``, at least
+``options.required_outputs`` in RenderOutputs names and shapes, honouring ``level_range``, ``distance_scale`` and
+``clca_enabled``, under ``torch.no_grad()`` with the render lock held; ``viewer_anchors()`` -> positions [A, 3],
+levels [A]; optional ``viewer_parent_found()`` -> [A] bool. ``ViewerState``: the rest (``RunViewerState``). The
+viewer holds ``render_lock`` per render and, while training runs unpaused, not again before ``step`` advances.
 """
 
 from __future__ import annotations

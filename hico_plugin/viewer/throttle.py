@@ -36,12 +36,10 @@ def plan_render(
 ) -> RenderKind | None:
     """What a client's view needs now.
 
-    ``version`` counts changes the user made (camera moved, option changed); ``rendered_version`` is
-    the version of the picture on screen and ``rendered_full`` whether that picture was a
-    full-resolution one. While changes keep coming (less than ``settle_seconds`` since the last one)
-    the view gets fast low-resolution previews; once it settles it gets one full-resolution render.
-    ``model_changed`` (training moved on since the picture was made) asks for a "refresh": a render at
-    the fast preview size that keeps training's share of the CPU, rather than a slow full one.
+    ``version`` counts the user's changes (camera moved, option changed); ``rendered_version`` and
+    ``rendered_full`` describe the picture on screen. Within ``settle_seconds`` of the last change the view gets
+    fast low-resolution previews, then one full-resolution render; ``model_changed`` (training moved on) asks for
+    a "refresh" at the fast preview size, which keeps training's share of the CPU.
     """
     settled = now - last_change_time >= settle_seconds
     if version != rendered_version:

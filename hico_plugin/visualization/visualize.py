@@ -1,12 +1,8 @@
 """Render outputs -> uint8 pictures: colormaps, percentile depth normalisation, normals as RGB.
 
-Pure functions of a RenderOutputs-style mapping of tensors (torch or numpy, any device)::
-
-    rgb [H, W, 3] in [0, 1]; depth / plane_depth / distance / alpha / level [H, W, 1];
-    normal (n_r) / depth_normal (n_d) [H, W, 3]
-
-Pixels the render does not cover (alpha <= 0.5, or non-finite values) are drawn black in scalar and
-normal views, so the colormap range is spent on the surface only.
+Pure functions of a RenderOutputs-style mapping (torch or numpy, any device): rgb [H, W, 3] in [0, 1]; depth /
+plane_depth / distance / alpha / level [H, W, 1]; normal (n_r) / depth_normal (n_d) [H, W, 3]. Uncovered pixels
+(alpha <= 0.5, or non-finite values) are black in scalar and normal views, so the colormap spans the surface only.
 """
 
 from __future__ import annotations

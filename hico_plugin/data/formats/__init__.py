@@ -1,14 +1,10 @@
-"""Dataset formats: each reads one on-disk layout into a ``SceneRecord`` (cameras in COLMAP's
-conventions, OpenCV axes), and registers itself in ``DATA_FORMATS``.
+"""Dataset formats: each reads one on-disk layout into a ``SceneRecord`` (cameras in COLMAP's conventions, OpenCV
+axes), and registers itself in ``DATA_FORMATS``.
 
-A format is a dataclass config with ``detect(data_dir) -> bool`` and ``read(data_dir) -> SceneRecord``;
-``--data DIR`` picks the first registered format whose ``detect`` accepts DIR unless a format is named
-as a subcommand (``--data DIR transforms``). An outside package adds a layout, then a subcommand too,
-by registering a config (``tests/plugin_example/``)::
-
-    @DATA_FORMATS.register("my-layout")
-    @dataclass
-    class MyLayout(DataFormat): ...
+A format is a dataclass config with ``detect(data_dir) -> bool`` and ``read(data_dir) -> SceneRecord``; ``--data
+DIR`` takes the first registered format whose ``detect`` accepts DIR unless one is named as a subcommand (``--data
+DIR transforms``). An outside package adds a layout, and its subcommand, with
+``@DATA_FORMATS.register("my-layout")`` on a ``DataFormat`` dataclass (``tests/plugin_example/``).
 """
 
 from __future__ import annotations

@@ -1,26 +1,10 @@
-"""The Mega-NeRF layout, in which Mill19 (building, rubble) and UrbanScene3D (residence, sci-art,
-campus) are distributed::
+"""The Mega-NeRF layout (Mill19, UrbanScene3D), read into the source SfM's frame and units, OpenCV camera axes.
 
-    DIR/coordinates.pt              {"origin_drb": [3], "pose_scale_factor": float}
-    DIR/train/rgbs/<stem>.jpg|png   undistorted images
-    DIR/train/metadata/<stem>.pt    {"H": int, "W": int, "c2w": [3, 4], "intrinsics": [4], "distortion": ...}
-    DIR/val/rgbs/, DIR/val/metadata/  the same for the held-out views (our test split)
-
-Conventions (facts of the format, from Mega-NeRF's COLMAP converter and its ray generation):
-- The world frame is "DRB": the source SfM's frame (COLMAP's) with its axes permuted by
-  ``P = [[0, 1, 0], [1, 0, 0], [0, 0, -1]]`` (x <- y, y <- x, z <- -z; a proper rotation, its own
-  inverse), then shifted and scaled: ``x_drb = (P @ x_source - origin_drb) / pose_scale_factor``.
-  Mega-NeRF's x axis is "down": its altitude bounds are planes of constant x.
-- ``c2w`` is camera->world in that frame with OpenGL camera axes (x right, y up, z backwards): a
-  pixel (i, j) looks along ``c2w[:, :3] @ ((i - cx) / fx, -(j - cy) / fy, -1)``.
-- ``intrinsics`` are ``fx, fy, cx, cy`` in pixels of the W x H image, COLMAP's pixel convention.
-- ``distortion`` is kept by the converter for reference only: the images in ``rgbs/`` are already
-  undistorted and Mega-NeRF's loader ignores it, so we do too.
-
-We undo the shift, scale and permutation, so cameras and points come out in the source SfM's frame
-and units (metres for Mill19), as the other formats do; the OpenGL camera axes become OpenCV ones.
-Every ``.pt`` file is read with ``torch.load(weights_only=True)``: a crafted pickle cannot run code.
-The layout has no point cloud: seed points come from ``data/seed_points.py``.
+``coordinates.pt`` {"origin_drb": [3], "pose_scale_factor"}; ``{train,val}/rgbs/<stem>.jpg|png`` (undistorted; val
+is our test split); ``{train,val}/metadata/<stem>.pt`` {"H", "W", "c2w": [3, 4] camera->world, OpenGL camera axes,
+"intrinsics": fx, fy, cx, cy in pixels, "distortion": ignored, as by Mega-NeRF's loader}. Its COLMAP converter's
+``x_drb = (P @ x_source - origin_drb) / pose_scale_factor``, ``P = [[0, 1, 0], [1, 0, 0], [0, 0, -1]]``, is
+undone. ``.pt`` files load with ``weights_only=True``: a crafted pickle cannot run code.
 """
 
 from __future__ import annotations

@@ -1,15 +1,10 @@
-"""nerfstudio / instant-ngp ``transforms.json``.
+"""nerfstudio / instant-ngp ``transforms.json``, read as nerfstudio's writer writes it.
 
-Conventions read (facts of the format, checked against nerfstudio's writer):
-- ``transform_matrix`` is camera->world with OpenGL camera axes (x right, y up, z backwards); the
-  OpenCV camera (y down, z forward) is the same matrix with its y and z columns negated.
-- intrinsics ``fl_x fl_y cx cy w h`` (instant-ngp may give ``camera_angle_x`` instead of ``fl_x``) and
-  distortion ``k1 k2 k3 k4 p1 p2`` sit at the top level (shared) or in a frame (that frame's own);
-  ``camera_model`` is OPENCV (default) or OPENCV_FISHEYE; pixel centres as in COLMAP.
-- ``applied_transform`` (3x4) is a transform the writer applied to the original world frame; its
-  inverse is applied to poses and points so outputs line up with the original frame.
-- ``ply_file_path`` names seed points in the file's world frame; ``mask_path`` and
-  ``depth_file_path`` per frame.
+``transform_matrix``: camera->world, OpenGL camera axes (the OpenCV camera negates its y and z columns).
+Intrinsics ``fl_x fl_y cx cy w h`` (or instant-ngp's ``camera_angle_x``) and distortion ``k1 k2 k3 k4 p1 p2`` sit
+at the top level (shared) or in a frame; ``camera_model`` is OPENCV (default) or OPENCV_FISHEYE; pixel centres as
+in COLMAP. The inverse of ``applied_transform`` (3x4) maps poses and points back to the original world frame.
+``ply_file_path``: seed points in the file's world frame; ``mask_path`` and ``depth_file_path`` per frame.
 """
 
 from __future__ import annotations

@@ -1,14 +1,10 @@
 """The effect contract: an image-formation effect the model simulates when the capture calls for it.
 
-An effect is one registered class (``EFFECTS``, a ``hico_plugin.components`` entry point for a package
-outside this one) that says which finding it answers and how it detects it from the dataset, what it
-changes in the anchor field's config, the module it builds, its parameter groups with their default
-learning rates, where it acts on the rendered image, and what it costs. ``HiCoModel`` loops over the
-chosen effects and names none. ``--model.effects`` chooses::
-
-    --model.effects auto                   # the default: exactly the effects the analysis finds
-    --model.effects auto,environment=off   # detect, but never learn a directional background
-    --model.effects environment=on,exposure=on,lod=on   # all forced: no full analysis, only what the effects start from
+An effect is one registered class (``EFFECTS``; a ``hico_plugin.components`` entry point from outside): the
+finding it answers and how it detects it, its changes to the field config, its module, parameter groups and
+default learning rates, where it acts on the image and its cost; ``HiCoModel`` names none. ``--model.effects
+auto`` (the default) learns exactly what the analysis finds; ``auto,environment=off`` detects but never learns a
+directional background; ``environment=on,exposure=on,lod=on`` forces all (no full analysis).
 """
 
 from __future__ import annotations

@@ -1,12 +1,10 @@
 """A learned environment: colour as a function of the world ray direction, composited behind the Gaussians.
 
-Anchors grow from the sparse points, so where no reconstructed point explains part of the photos
-(``analysis.uncovered_cells``) the render shows what lies behind the Gaussians: open sky outdoors, plain
-walls and ceilings SfM found no features on indoors. A constant background cannot match a gradient sky
-or a lit wall, and Gaussians pushed there to fake it become floaters. A small MLP on the unit ray
-direction needs no up axis (COLMAP frames have none) and stays smooth:
-``rgb = rgb_gaussians + (1 - alpha) * environment(direction)``. It is exact for a distant background and
-an approximation for near surfaces that still pays (benchmarks/RESULTS.md, "Figures behind the defaults").
+Where no reconstructed point explains the photos (``analysis.uncovered_cells``: open sky, featureless walls) the
+render shows what lies behind the Gaussians; a constant cannot match a gradient sky or a lit wall, and Gaussians
+pushed there become floaters. A small MLP on the unit ray direction needs no up axis and stays smooth: ``rgb =
+rgb_gaussians + (1 - alpha) * environment(direction)``, exact for a distant background and an approximation for
+near surfaces that still pays (benchmarks/RESULTS.md, "Figures behind the defaults").
 """
 
 from __future__ import annotations

@@ -1,19 +1,10 @@
 """Per-image appearance: an affine colour transform of each training photo's render.
 
-Auto-exposure and white balance act on the whole sensor image: ``photo = A_i @ radiance + b_i`` with
-A_i close to a diagonal gain. The decoupled-appearance idea of VastGaussian / Hierarchical-3DGS is
-to apply such a per-image transform to the *render* during training only, so the scene's colours
-stay the photos' common appearance and the disagreement between photos goes into 12 numbers per
-photo. Chosen over gsplat's per-image bilateral grid (thousands of parameters per photo, and it
-models spatially varying tone mapping these captures do not need) and over the decoder's appearance
-embedding (it feeds the colour MLP, so per-photo changes can leak into view-dependent colour and
-cost every decoded Gaussian a wider MLP). Views that are not training photos (test, viewer) render
-without a transform: their exposure is unknown, which the colour-corrected metrics account for.
-
-Each transform starts from the photo's gains that the data analysis measured from shared sparse
-points (``analysis.photo_gains``), not from identity: starting from identity, the scene learns
-the photos' disagreement in its first few hundred steps, faster than 12 numbers per photo move,
-and keeps part of it baked in.
+Auto-exposure and white balance give ``photo = A_i @ radiance + b_i`` (A_i near a diagonal gain). As in
+VastGaussian / Hierarchical-3DGS it acts on the render in training only, so the scene keeps the photos' common
+look and their disagreement goes into 12 numbers a photo (not gsplat's bilateral grid, thousands a photo, nor the
+appearance embedding, which can leak into view-dependent colour); test and viewer views render without it. It
+starts from the measured gains (``analysis.photo_gains``), else the scene learns part of the disagreement.
 """
 
 from __future__ import annotations
