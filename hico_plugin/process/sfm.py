@@ -52,7 +52,8 @@ class SfmOptions:
     """A COLMAP vocabulary tree file for vocabtree and sequential matching (e.g. one of COLMAP's
     published trees); default: one built from the photos' own SIFT features, nothing downloaded."""
     mapper: Mapper = "auto"
-    """auto: incremental up to --incremental-max photos, global above. incremental (COLMAP): the most
+    """auto: incremental up to --incremental-max photos, global above, the other one when the first registers
+    too few. incremental (COLMAP): the most
     robust; global (GLOMAP): all poses at once, faster on large sets; hierarchical: partitions the
     scene and merges the parts."""
     incremental_max: int = 300
@@ -122,6 +123,20 @@ def choose_mapper(count: int, options: SfmOptions) -> tuple[str, str]:
                       "(rotation averaging, global positioning), no bundle adjustment per photo added")
 
 
+def map_with_fallback(map_one: Callable[[str], dict[str, Any]], mapper: str, auto: bool,
+                      say: Callable[[str], None]) -> dict[str, Any]:
+    """``map_one(mapper)``; under --mapper auto, a mapper that registers too few hands the set to the other
+    (incremental <-> global): either can stop early on a set the other maps (COLMAP's FAQ on the mappers)."""
+    try:
+        return map_one(mapper)
+    except HicoError as err:
+        other = {"incremental": "global", "global": "incremental"}.get(mapper)
+        if not auto or other is None:
+            raise
+        say(f"{'mapping':<12} the {mapper} mapper fell short ({err}); mapping with the {other} mapper instead")
+        return map_one(other)
+
+
 def feature_sizes(infos: dict[str, PhotoInfo], groups: list[list[str]], max_long_side: int) -> list[int]:
     """Per camera group, the long side SIFT reads its photos at: the size training loads them (the
     whole set's power-of-two downscale within ``max_long_side``, ``image_io.downscale_factor``)."""
@@ -161,14 +176,8 @@ def run_sfm(input_dir: Path, names: list[str], out: Path, options: SfmOptions, r
     key = stage_key(matching_key, mapper, options.seed)
 
     def mapping(report: Report) -> dict[str, Any]:
-        try:
-            return _map(database, input_dir, work, mapper, options, report)
-        except HicoError as err:
-            if options.mapper != "auto" or mapper == "incremental":
-                raise
-            # The global mapper is the less robust one (COLMAP's FAQ): a set it fails is mapped incrementally.
-            runner.say(f"{'mapping':<12} the global mapper fell short ({err}); mapping incrementally instead")
-            return _map(database, input_dir, work, "incremental", options, report)
+        return map_with_fallback(lambda chosen: _map(database, input_dir, work, chosen, options, report), mapper,
+                                 options.mapper == "auto", runner.say)
 
     mapped = runner.run("mapping", key, mapping, unit="photos", describe=_describe_mapping)
     model_dir = work / "sparse" / str(mapped["model"])
@@ -308,7 +317,7 @@ def _map(database: Path, input_dir: Path, work: Path, mapper: str, options: SfmO
         raise HicoError(
             f"{input_dir}: only {registered} of {total} images registered (expected at least "
             f"{max(3, int(np.ceil(options.min_registered * total)))}, --min-registered {options.min_registered}); "
-            "the photos need more overlap and texture, or try --matcher exhaustive / --mapper incremental"
+            "the photos need more overlap and texture, or try --matcher exhaustive / another --mapper"
         )
     # every model is written under sparse/<i> by the pipelines; make sure the chosen one is on disk
     models[best].write_binary(str(sparse / str(best)))

@@ -12,7 +12,7 @@ from hico_plugin.data.images import MAX_LONG_SIDE
 from hico_plugin.data.parser import DataParserConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.process.ingest import PhotoInfo
-from hico_plugin.process.sfm import SfmOptions, check_options, choose_mapper, feature_sizes
+from hico_plugin.process.sfm import SfmOptions, check_options, choose_mapper, feature_sizes, map_with_fallback
 
 
 def _loaded_long_side(sizes: list[tuple[int, int]], max_long_side: int) -> list[int]:
@@ -55,3 +55,34 @@ def test_bad_options_are_one_line(field, value, message):
 def test_a_missing_vocabulary_tree_is_refused(tmp_path):
     with pytest.raises(HicoError, match=r"--vocab-tree .*none.bin: file not found"):
         check_options(SfmOptions(vocab_tree=tmp_path / "none.bin"))
+
+
+def _mapper_that_fails(*failing: str):
+    tried = []
+
+    def map_one(mapper: str) -> dict:
+        tried.append(mapper)
+        if mapper in failing:
+            raise HicoError(f"{mapper}: only 2 of 100 images registered")
+        return {"mapper": mapper}
+
+    return map_one, tried
+
+
+@pytest.mark.parametrize("first,other", [("incremental", "global"), ("global", "incremental")])
+def test_auto_mapping_hands_a_set_the_first_mapper_fails_to_the_other(first, other):
+    map_one, tried = _mapper_that_fails(first)
+    said = []
+    assert map_with_fallback(map_one, first, True, said.append) == {"mapper": other}
+    assert tried == [first, other] and f"the {first} mapper fell short" in said[0]
+
+
+def test_a_named_mapper_or_two_failures_end_in_the_error():
+    map_one, tried = _mapper_that_fails("incremental")
+    with pytest.raises(HicoError, match="incremental: only 2"):
+        map_with_fallback(map_one, "incremental", False, print)  # --mapper incremental: no other
+    assert tried == ["incremental"]
+    map_one, tried = _mapper_that_fails("incremental", "global")
+    with pytest.raises(HicoError, match="global: only 2"):
+        map_with_fallback(map_one, "incremental", True, lambda line: None)
+    assert tried == ["incremental", "global"]
