@@ -95,3 +95,7 @@ def write_without_tracks(source: Path, out: Path) -> Path:
     comments, body = [x for x in lines if x.startswith("#")], [x for x in lines if not x.startswith("#")]
     (model / "images.txt").write_text("\n".join(comments + [x for pose in body[::2] for x in (pose, "")]) + "\n")
     return out
+
+
+SMALL_DISTRICT = dict(blocks=3, num_views=30, sparse_points=300, surface_spacing=1.0)
+"""A district small enough for a test whose views still have neighbours: 3 x 3 blocks, 30 views."""

@@ -52,10 +52,9 @@ class SfmOptions:
     """A COLMAP vocabulary tree file for vocabtree and sequential matching (e.g. one of COLMAP's
     published trees); default: one built from the photos' own SIFT features, nothing downloaded."""
     mapper: Mapper = "auto"
-    """auto: incremental up to --incremental-max photos, global above, the other one when the first registers
-    too few. incremental (COLMAP): the most
-    robust; global (GLOMAP): all poses at once, faster on large sets; hierarchical: partitions the
-    scene and merges the parts."""
+    """auto: incremental up to --incremental-max photos, global above, the other one when the first
+    registers too few. incremental (COLMAP): the most robust; global (GLOMAP): all poses at once, faster
+    on large sets; hierarchical: partitions the scene and merges the parts."""
     incremental_max: int = 300
     """Most photos --mapper auto maps incrementally: above it, the global mapper solves every pose at
     once instead of a bundle adjustment for every few photos added, which makes incremental slow there."""

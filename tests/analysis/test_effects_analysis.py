@@ -18,7 +18,7 @@ from hico_plugin.model.effects import analyze_effects, parse_effects
 from hico_plugin.model.effects.exposure import AffineColour
 from hico_plugin.scenes import SCENES
 from hico_plugin.scenes.generate import generate_scene
-from helpers_datasets import write_without_tracks
+from helpers_datasets import SMALL_DISTRICT, write_without_tracks
 
 SMALL = dict(num_views=16, width=96, height=72, pixel_samples=1)
 # effect declared by a scene -> the analysis finding that must agree with it. Sensor noise is left
@@ -27,7 +27,7 @@ SMALL = dict(num_views=16, width=96, height=72, pixel_samples=1)
 FINDING = {"exposure": "exposure", "multi_distance": "multi_distance"}
 # a scene's own small capture where SMALL would not show what the analysis reads: the district's 16
 # views of 81 blocks have no neighbouring views to measure parallax between
-SIZE = {"district": dict(blocks=3, num_views=30, sparse_points=300, surface_spacing=1.0)}
+SIZE = {"district": SMALL_DISTRICT}
 # scenes whose views see featureless ground hundreds of metres away (the district's obliques look
 # 17-26 degrees down at ground out to ten flight heights): a distant background with or without sky
 DISTANT_GROUND = {"district"}

@@ -13,9 +13,9 @@ from hico_plugin.data.parser import DataParserConfig
 from hico_plugin.errors import HicoError
 from hico_plugin.scenes.generate import generate_scene, scene_config
 from hico_plugin.scenes.raycast import ConvexPolyhedron, Ground, Revolution, Sphere
+from helpers_datasets import SMALL_DISTRICT
 
-# a district small enough for a unit test: 3 x 3 blocks (the landmarks included), 30 views
-SMALL = dict(blocks=3, num_views=30, width=64, height=48, pixel_samples=1, sparse_points=300, surface_spacing=1.0)
+SMALL = dict(SMALL_DISTRICT, width=64, height=48, pixel_samples=1)
 
 
 @pytest.fixture(scope="module")
