@@ -4,7 +4,9 @@
     python benchmarks/process_scaling.py WORKDIR --photos FOLDER [-- --num-threads 2 ...]
 
 For each count N a built-in scene is rendered with N views (default ``district``, a drone's grid over
-many blocks, or ``city-block`` where district is not registered) and handed over as unposed JPEGs,
+many blocks, or ``city-block`` where district is not registered) over an area that grows with N, so
+that every count is captured as densely as the scene's default (``--fixed-area``: the default area
+for every N, N views spread ever thinner), and handed over as unposed JPEGs,
 each with its camera centre plus a consumer GPS fix's error (--gps-noise-m) as GPS in its EXIF
 (--no-gps: none, so above --exhaustive-max the vocabulary tree pairs them); --photos takes a folder as
 it is. ``hico-process images`` runs on each with the options after ``--``, and its summary gives one
@@ -26,17 +28,29 @@ from PIL import Image
 
 from hico_plugin.process.stages import stage_key
 from hico_plugin.scenes import SCENES
-from hico_plugin.scenes.generate import generate_scene
+from hico_plugin.scenes.generate import generate_scene, scene_config
 from hico_plugin.scenes.geotagged import write_geotagged_photos
 
 STAGES = ("ingest", "features", "matching", "mapping", "undistort", "downscale")
 
 
+def blocks_for(scene: str, count: int) -> int | None:
+    """Blocks per side that hold ``count`` views as densely as the scene's default holds its views
+    (area in proportion to the views; odd, at least 3, as the grid needs); None for a scene without blocks."""
+    default = scene_config(scene)
+    if not hasattr(default, "blocks"):
+        return None
+    side = default.blocks * (count / default.num_views) ** 0.5
+    return max(3, 2 * int(round((side - 1) / 2)) + 1)
+
+
 def photos_of_scene(work: Path, scene: str, count: int, size: tuple[int, int] | None, gps: bool,
-                    noise_m: float) -> Path:
-    """WORKDIR/<scene>-<count>[-WxH]/photos[-no-gps]: the scene's views rendered and written as JPEGs."""
-    root = work / (f"{scene}-{count}" + (f"-{size[0]}x{size[1]}" if size else ""))
-    overrides = {"num_views": count, **({"width": size[0], "height": size[1]} if size else {})}
+                    noise_m: float, fixed_area: bool) -> Path:
+    """WORKDIR/<scene>-<count>[-bB][-WxH]/photos[-no-gps]: the scene's views rendered and written as JPEGs."""
+    blocks = None if fixed_area else blocks_for(scene, count)
+    root = work / (f"{scene}-{count}" + (f"-b{blocks}" if blocks else "") + (f"-{size[0]}x{size[1]}" if size else ""))
+    overrides = {"num_views": count, **({"blocks": blocks} if blocks else {}),
+                 **({"width": size[0], "height": size[1]} if size else {})}
     rendered = generate_scene(scene, root / "scene", **overrides)
     photos = root / ("photos" if gps else "photos-no-gps")
     if not photos.is_dir():
@@ -78,6 +92,8 @@ def main() -> None:
     parser.add_argument("--num-photos", type=int, nargs="+", default=[100])
     parser.add_argument("--size", type=lambda text: tuple(int(v) for v in text.split("x")), default=None,
                         help="rendered WxH (default: the scene's)")
+    parser.add_argument("--fixed-area", action="store_true",
+                        help="the scene's default area for every count (default: the area grows with the count)")
     parser.add_argument("--no-gps", action="store_true", help="photos without GPS in their EXIF")
     parser.add_argument("--gps-noise-m", type=float, default=3.0, help="GPS error per axis in metres")
     args, extra = parser.parse_known_args()
@@ -86,7 +102,8 @@ def main() -> None:
     if args.photos is not None:
         folders = [args.photos.expanduser().resolve()]
     else:
-        folders = [photos_of_scene(work, args.scene, count, args.size, not args.no_gps, args.gps_noise_m)
+        folders = [photos_of_scene(work, args.scene, count, args.size, not args.no_gps, args.gps_noise_m,
+                                   args.fixed_area)
                    for count in args.num_photos]
     header = ["photos", "matcher", "mapper", "registered", "pairs", *(f"{s} s" for s in STAGES), "matching s/photo"]
     rows = []

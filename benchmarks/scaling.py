@@ -90,7 +90,7 @@ def overhead(data_dir: Path, dense: bool, steps: int, blocks: int, stride: int) 
     camera = full.appearance_camera(dataset.cameras[index])
     rows = field.select(camera, step)
     part = copy.deepcopy(full)
-    part.field.keep(rows)
+    part.keep_anchors(rows)
     assert torch.equal(part.field.select(camera, step), torch.arange(rows.numel())), "the subset sees otherwise"
     batch = make_batch(dataset, [index], torch.device("cpu"))
     results = {"whole": [], "visible only": []}
@@ -103,7 +103,7 @@ def overhead(data_dir: Path, dense: bool, steps: int, blocks: int, stride: int) 
             "gaussians": int(getattr(full, "last_num_gaussians", 0)), "median_ms": medians,
             "stage_ms": {name: timer.mean_ms() for name, timer in timers.items()},
             "ratio": medians["whole"] / medians["visible only"], "dense": dense,
-            "bytes_per_anchor": field.bytes_per_anchor()}
+            "bytes_per_anchor": full.bytes_per_anchor()}
 
 
 def _print_overhead(result: dict) -> None:

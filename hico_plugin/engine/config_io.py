@@ -28,7 +28,8 @@ _NOW_MAPPINGS = {"hico_plugin.losses.LossesConfig"}  # a model's losses became a
 # Config classes that moved to another module: the path older config.yml files name -> today's.
 _MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig",
           "hico_plugin.model.effects.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig",
-          "hico_plugin.viewer.viewer.ViewerConfig": "hico_plugin.viewer.config.ViewerConfig"}
+          "hico_plugin.viewer.viewer.ViewerConfig": "hico_plugin.viewer.config.ViewerConfig",
+          "hico_plugin.field.densify.DensifyConfig": "hico_plugin.strategy.base.DensifyConfig"}
 # Fields renamed since runs were trained: class -> {the name older config.yml files use: today's}.
 _RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environment"}}
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
@@ -37,7 +38,7 @@ _RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environmen
 # a fixed colour; its environment MLP ran at every pixel), not today's default.
 _ADDED_FIELDS = {
     "hico_plugin.data.parser.DataParserConfig": {"orient": False, "orient_method": "up"},
-    "hico_plugin.field.densify.DensifyConfig": {"keep_ancestors": False, "draw_ancestors": True},
+    "hico_plugin.strategy.base.DensifyConfig": {"keep_ancestors": False, "draw_ancestors": True},
     "hico_plugin.model.hico.HiCoModelConfig": {"learn_background": False, "background_start": "configured"},
     "hico_plugin.model.effects.environment.EnvironmentConfig": {"stride": 1},
 }

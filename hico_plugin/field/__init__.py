@@ -4,20 +4,20 @@
     visible_ids = field.select(camera, step)
     gaussians = field.decode(camera, visible_ids)      # NeuralGaussians
 
-See field.py for the training-side API (param_groups, accumulate_stats, densify).
+See field.py for the training-side API (param_groups, after_update, resize); densification is a strategy
+beside the field (``hico_plugin.strategy``).
 """
 
 from hico_plugin.field.context import (
     CONTEXT_AGGREGATORS, ContextAggregator, ContextConfig, ContextLookup, context_lookup, context_triplet)
 from hico_plugin.field.context_graph import ContextGraph, ContextIndex, context_graph, dense_cell_ids, parent_edges
 from hico_plugin.field.decoder import DecoderConfig, GaussianDecoder, NeuralGaussians
-from hico_plugin.field.densify import DensifyConfig
 from hico_plugin.field.field import ANCHOR_GROUPS, AnchorField, FieldConfig
 from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree
 
 __all__ = [
     "ANCHOR_GROUPS", "AnchorField", "CONTEXT_AGGREGATORS", "ContextAggregator", "ContextConfig",
     "ContextGraph", "ContextIndex", "ContextLookup", "context_graph", "context_lookup", "parent_edges",
-    "DecoderConfig", "DensifyConfig", "FieldConfig", "GaussianDecoder", "NeuralGaussians",
+    "DecoderConfig", "FieldConfig", "GaussianDecoder", "NeuralGaussians",
     "OctreeBuildConfig", "OctreeGrid", "build_octree", "context_triplet", "dense_cell_ids",
 ]

@@ -1,17 +1,17 @@
-"""AnchorField: the octree anchors as an nn.Module, with selection, CLCA, decoding and densification.
+"""AnchorField: the octree anchors as an nn.Module, with selection, CLCA and decoding.
 
 Per view: ``visible_ids = field.select(camera, step)`` (step=None at eval: all levels), ``gaussians =
-field.decode(camera, visible_ids)``, render, backward, ``field.accumulate_stats(gaussians, out.means2d.grad,
-out.radii, camera, step)``. After the optimizer update, on ``field.is_densify_step(step)`` (``sync_stats`` first
-across processes), ``field.densify(step)`` gives per changed group ``(kept_rows [R] long, num_new)``: the new
-parameter is ``cat([old[kept_rows], num_new new rows])`` (``Optimizers.resize_group``'s contract), or {}.
+field.decode(camera, visible_ids)``, render, backward; after the optimizer update ``field.after_update()``.
+Densification is a strategy beside the field (``hico_plugin.strategy``) that edits it through ``resize``:
+per anchor-row group the new parameter is ``cat([old[kept_rows], new rows])`` (``Optimizers.resize_group``'s
+contract).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field as dataclass_field
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -23,13 +23,11 @@ from hico_plugin.field.chunks import AnchorChunks
 from hico_plugin.field.snapshot import TensorSnapshot
 from hico_plugin.field.context import ContextConfig
 from hico_plugin.field.decoder import DecoderConfig, NeuralGaussians
-from hico_plugin.field.context_graph import cell_keys
 from hico_plugin.field.gather import take_rows
-from hico_plugin.field.densify import (DensifyConfig, GrownAnchors, close_ancestors, extra_level_increment,
-                                       grow_anchors, offset_gradients, prune_decision, rows_in)
 from hico_plugin.field.lod import active_level_count, frustum_visible, lod_visible, progressive_interval_ends
 from hico_plugin.field.octree import OctreeBuildConfig, OctreeGrid, build_octree, knn_log_scale
 from hico_plugin.row_sparse import sparse_rows
+from hico_plugin.strategy.base import DensifyConfig
 
 def anchor_radii(log_scaling: Tensor) -> Tensor:
     """World-space extent of each anchor's Gaussians, 3 sigma of its largest offset scale: [N] from [N,6]."""
@@ -39,12 +37,8 @@ def anchor_radii(log_scaling: Tensor) -> Tensor:
 # Parameter groups whose rows are anchors (resized by densification), and the attribute holding each.
 ANCHOR_GROUPS = {"anchor": "anchors", "offset": "offsets", "anchor_feat": "anchor_features",
                  "scaling": "log_scaling"}
-# Densification statistics; each has a ``<name>_synced`` twin holding its value at the last sync.
-STAT_BUFFERS = ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom", "stat_views")
 # Per-anchor buffers, resized together with the anchor parameters.
-ANCHOR_BUFFERS = ("levels", "drawn", "extra_level", "opacity_accum", "anchor_denom", "offset_grad_accum",
-                  "offset_denom", "opacity_accum_synced", "anchor_denom_synced",
-                  "offset_grad_accum_synced", "offset_denom_synced")
+ANCHOR_BUFFERS = ("levels", "drawn", "extra_level")
 
 
 @dataclass
@@ -57,6 +51,7 @@ class FieldConfig(InstantiateConfig):
     context: ContextConfig = dataclass_field(default_factory=ContextConfig)
     decoder: DecoderConfig = dataclass_field(default_factory=DecoderConfig)
     densify: DensifyConfig = dataclass_field(default_factory=DensifyConfig)
+    """The densification strategy and its schedule (built beside the field by the model)."""
     reference_steps: int = 30_000
     """Step values of the schedules (coarse_steps, densify.*) are written for a run of this many
     optimizer steps (the paper's 30k iterations); a run of T steps scales them by T / reference_steps.
@@ -108,8 +103,8 @@ class AnchorField(nn.Module):
     Parameters: anchors [N,3] (p), offsets [N,K,3], anchor_features [N,d], log_scaling [N,6] (s[:3] scales the
     offsets, s[3:] bounds the children's scales). Buffers: levels [N] long; drawn [N] bool (False: an ancestor
     kept only for CLCA, ``DensifyConfig.draw_ancestors``); extra_level [N] (the paper's "learnable" eps, set by
-    the densification rule as in the base code); opacity_accum [N], anchor_denom [N], offset_grad_accum [N,K],
-    offset_denom [N,K]; training camera centres [C,3]; schedule counters; the ``OctreeGrid`` as extra state.
+    the densification rule as in the base code); training camera centres [C,3]; the ``OctreeGrid`` as extra
+    state.
     """
 
     def __init__(self, config: FieldConfig, positions: Tensor, levels: Tensor, grid: OctreeGrid,
@@ -125,36 +120,19 @@ class AnchorField(nn.Module):
         self.register_buffer("levels", levels.long().clone())
         self.register_buffer("drawn", torch.ones(num, dtype=torch.bool))
         self.register_buffer("extra_level", torch.zeros(num))
-        self.register_buffer("opacity_accum", torch.zeros(num))
-        self.register_buffer("anchor_denom", torch.zeros(num))
-        self.register_buffer("offset_grad_accum", torch.zeros(num, k))
-        self.register_buffer("offset_denom", torch.zeros(num, k))
         self.register_buffer("train_camera_centers", camera_centers.float().clone())
-        self.register_buffer("stat_views", torch.zeros((), dtype=torch.long))
-        self.register_buffer("last_adjust_step", torch.zeros((), dtype=torch.long))
-        for name in STAT_BUFFERS:
-            self.register_buffer(f"{name}_synced", getattr(self, name).clone())
         self.context = config.context.setup(feature_dim=d)
-        self.keeps_ancestors = config.densify.keeps_tree(config.context)
         self.decoder = config.decoder.setup(feature_dim=d, num_train_cameras=num_train_cameras)
         self.set_schedule_scale(schedule_scale)
-        self.last_densify: dict[str, int] = {}
         self._chunks: AnchorChunks | None = None
         self._chunks_of: TensorSnapshot | None = None  # the tensors the chunks' bounds were read from
         self._counts: tuple[TensorSnapshot | None, dict[str, float]] = (None, {})  # stats() of those tensors
-        # The octree's own anchors, the base of a relative anchor budget. A resumed run rebuilds the
-        # same octree from the same data before loading its checkpoint, so this stays the run's.
-        self.initial_anchors = num
 
     # ----- schedule -------------------------------------------------------------------------------
 
     def set_schedule_scale(self, scale: float) -> None:
-        """Scale the step-valued schedules by ``scale`` (a run's length / ``reference_steps``)."""
+        """Scale the level schedule by ``scale`` (a run's length / ``reference_steps``)."""
         self.schedule_scale = scale
-        dens = self.config.densify
-        self.densify_start = int(round(dens.start_step * scale))
-        self.densify_interval = max(1, int(round(dens.interval * scale)))
-        self.densify_stop = int(round(dens.stop_step * scale))
         coarse = self.config.coarse_steps * scale if self.config.progressive else 0
         self.level_interval_ends = progressive_interval_ends(self.grid, coarse, self.config.coarse_factor)
 
@@ -304,154 +282,36 @@ class AnchorField(nn.Module):
         return groups
 
     @torch.no_grad()
-    def accumulate_stats(self, gaussians: NeuralGaussians, means2d_grad: Tensor, radii: Tensor,
-                         camera: Camera, step: int) -> None:
-        """Add one view to the densification statistics (until densify.stop_step).
-
-        means2d_grad [M,2]: dL/dmeans2d in pixels of this view's loss (the rasterizer's means2d.grad;
-        if the loss is a batch mean, multiply by the batch size first); it is converted to NDC units,
-        the scale of grad_threshold. radii [M] (or [M,2]): Gaussians with radius 0 were not drawn.
-        """
-        if not self.config.densify.enabled or step > self.densify_stop:
-            return
-        ids = gaussians.visible_ids
-        opacity_sums = gaussians.raw_opacities.clamp_min(0).sum(1).to(self.opacity_accum)
-        self.opacity_accum.index_add_(0, ids, opacity_sums)
-        self.anchor_denom.index_add_(0, ids, torch.ones_like(ids, dtype=self.anchor_denom.dtype))
-        drawn = radii > 0 if radii.dim() == 1 else (radii > 0).any(-1)  # a view may decode nothing
-        ndc = means2d_grad.detach() * means2d_grad.new_tensor([camera.width / 2, camera.height / 2])
-        grad_norm = ndc.norm(dim=-1)[drawn].to(self.offset_grad_accum)
-        offset_rows = (gaussians.anchor_ids * self.offsets.shape[1] + gaussians.child_ids)[drawn]
-        self.offset_grad_accum.view(-1).index_add_(0, offset_rows, grad_norm)
-        self.offset_denom.view(-1).index_add_(0, offset_rows, torch.ones_like(grad_norm))
-        self.stat_views += 1
-
-    @torch.no_grad()
-    def sync_stats(self, all_reduce_sum: Callable[[Tensor], Any]) -> None:
-        """Sum the statistics gathered since the last sync over all workers (multi-process training).
-
-        Call on every worker, before ``densify``, with an in-place sum over workers (e.g.
-        ``engine.distributed.all_reduce_sum_``). Only the increments since the last sync are reduced:
-        reducing the whole accumulators would count the part carried over from earlier intervals
-        (identical on every worker) once per worker.
-        """
-        for name in STAT_BUFFERS:
-            total, synced = getattr(self, name), getattr(self, f"{name}_synced")
-            increment = total - synced
-            all_reduce_sum(increment)
-            total.copy_(synced + increment)
-            synced.copy_(total)
-
-    def is_densify_step(self, step: int) -> bool:
-        return (self.config.densify.enabled and self.densify_start < step <= self.densify_stop
-                and step % self.densify_interval == 0)
-
-    @torch.no_grad()
-    def densify(self, step: int) -> dict[str, tuple[Tensor, int]]:
-        """Grow and prune anchors when the schedule says so; see the module docstring for the result.
-
-        Returns {group: (kept_rows [R] long, num_new)} for every anchor-row group, or {} when no shape
-        changed (not a densification step, or nothing grown or pruned).
-        """
-        if not self.is_densify_step(step):
-            return {}
-        cfg = self.config.densify
-        steps_elapsed = max(1, step - int(self.last_adjust_step))
-        check_views = self.densify_interval * float(self.stat_views) / steps_elapsed * cfg.success_threshold
-        grads, eligible = offset_gradients(self.offset_grad_accum, self.offset_denom, 0.5 * check_views)
-        allow_finer = self.progressive_done(step)
-        if allow_finer:
-            self.extra_level += extra_level_increment(grads, eligible, self.levels, self.grid, cfg)
-        threshold = self.config.octree.visible_threshold
-        hides = self.keeps_ancestors and not cfg.draw_ancestors
-        prune, judged = prune_decision(self.opacity_accum, self.anchor_denom, cfg.min_opacity, check_views)
-        budget = cfg.budget(self.initial_anchors)
-        room = None if budget is None else budget - int((self.drawn & ~prune).sum())
-        grown = grow_anchors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
-                             self.offsets.detach(), self.log_scaling.detach(), grads, self.grid, cfg,
-                             self.train_camera_centers, max(threshold, 0.0), allow_finer,
-                             blocks=self.drawn if hides else None, limit=room)
-        if hides:
-            grown = self._draw_hidden_ancestors(grown)
-        self.offset_grad_accum[eligible] = 0
-        self.offset_denom[eligible] = 0
-        new_drawn = torch.ones(grown.positions.shape[0], dtype=torch.bool, device=self.drawn.device)
-        if self.keeps_ancestors:
-            # an ancestor no kept anchor needs goes; close_ancestors revives the needed ones
-            before = ~prune & self.drawn if hides else ~prune
-            keep, grown = close_ancestors(self.anchors.detach(), self.levels, self.anchor_features.detach(),
-                                          before, grown, self.grid)
-            prune = ~keep
-            added = grown.positions.shape[0] - len(new_drawn)  # the new parents, appended to grown
-            new_drawn = torch.cat([new_drawn, new_drawn.new_full((added,), not hides)])
-            if hides:
-                self.drawn &= before  # the revived anchors: context only
-        self.opacity_accum[judged] = 0
-        self.anchor_denom[judged] = 0
-        self.stat_views.zero_()
-        self.last_adjust_step.fill_(step)
-
-        num_new = grown.positions.shape[0]
-        self.last_densify = {"grown": num_new, "pruned": int(prune.sum())}
-        for level in range(self.grid.num_levels):
-            self.last_densify[f"grown_level_{level}"] = int((grown.levels == level).sum())
-        if num_new == 0 and not prune.any():
-            self._mark_synced()
-            return {}
-        kept_rows = (~prune).nonzero().squeeze(1)
-        self._resize(kept_rows, grown, new_drawn)
-        self._mark_synced()
-        if prune.any():
-            self.log_scaling[:, 3:].clamp_(max=cfg.max_log_scale)
-        return {name: (kept_rows, num_new) for name in ANCHOR_GROUPS}
-
-    @torch.no_grad()
     def keep(self, rows: Tensor) -> dict[str, tuple[Tensor, int]]:
         """Keep only the anchors ``rows`` [R] long (ascending), with every per-anchor parameter and
-        buffer; returns ``densify``'s {group: (kept_rows, 0)} for ``Optimizers.resize_group``."""
-        empty = GrownAnchors(self.anchors.new_zeros(0, 3), self.levels.new_zeros(0),
-                             self.anchor_features.new_zeros(0, self.anchor_features.shape[1]))
-        self._resize(rows, empty, self.drawn.new_zeros(0))
-        self._mark_synced()
-        return {name: (rows, 0) for name in ANCHOR_GROUPS}
+        buffer; returns ``resize``'s {group: (rows, 0)}."""
+        return self.resize(rows, self.anchors.new_zeros(0, 3), self.levels.new_zeros(0),
+                           self.anchor_features.new_zeros(0, self.anchor_features.shape[1]), self.drawn.new_zeros(0))
 
-    def _mark_synced(self) -> None:
-        """After an adjustment every worker holds the same statistics: the next sync starts here."""
-        for name in STAT_BUFFERS:
-            getattr(self, f"{name}_synced").copy_(getattr(self, name))
-
-    def _draw_hidden_ancestors(self, grown: GrownAnchors) -> GrownAnchors:
-        """Growth asks for an anchor where an ancestor kept for context sits: draw that ancestor (it
-        keeps its training) instead of adding a second anchor to its cell; returns the rest of ``grown``."""
-        hidden = (~self.drawn).nonzero().squeeze(1)
-        if len(hidden) == 0 or grown.positions.shape[0] == 0:
-            return grown
-        hidden_keys = cell_keys(self.anchors.detach()[hidden], self.levels[hidden], self.grid)
-        grown_keys = cell_keys(grown.positions, grown.levels, self.grid)
-        self.drawn[hidden[rows_in(hidden_keys, grown_keys)]] = True
-        fresh = ~rows_in(grown_keys, hidden_keys)
-        return GrownAnchors(grown.positions[fresh], grown.levels[fresh], grown.features[fresh])
-
-    def _resize(self, kept_rows: Tensor, grown, new_drawn: Tensor) -> None:
-        """Swap every per-anchor parameter / buffer for ``cat([old[kept_rows], new rows])``;
-        new_drawn [G] bool: which new rows are drawn."""
-        num_new, k = grown.positions.shape[0], self.offsets.shape[1]
-        voxel = self.grid.voxel_size / float(self.grid.fork) ** grown.levels.to(torch.float32)
+    @torch.no_grad()
+    def resize(self, kept_rows: Tensor, positions: Tensor, levels: Tensor, features: Tensor,
+               drawn: Tensor) -> dict[str, tuple[Tensor, int]]:
+        """Swap every per-anchor parameter / buffer for ``cat([old[kept_rows], new rows])``: G new anchors at
+        positions [G,3] on their levels [G] long with features [G,d], drawn [G] bool; offsets zero, scales
+        their cell's. Returns {group: (kept_rows, G)} for ``Optimizers.resize_group``."""
+        num_new, k = positions.shape[0], self.offsets.shape[1]
+        voxel = self.grid.voxel_size / float(self.grid.fork) ** levels.to(torch.float32)
         new_rows = {
-            "anchors": grown.positions.to(self.anchors),
+            "anchors": positions.to(self.anchors),
             "offsets": self.offsets.new_zeros(num_new, k, 3),
-            "anchor_features": grown.features.to(self.anchor_features),
+            "anchor_features": features.to(self.anchor_features),
             "log_scaling": torch.log(voxel).to(self.log_scaling)[:, None].repeat(1, 6),
         }
         for attr, rows in new_rows.items():
             old = getattr(self, attr)
             setattr(self, attr, nn.Parameter(torch.cat([old.detach()[kept_rows], rows]),
                                              requires_grad=old.requires_grad))
-        given = {"levels": grown.levels, "drawn": new_drawn}  # every other buffer starts at zero
+        given = {"levels": levels, "drawn": drawn}  # every other buffer starts at zero
         for name in ANCHOR_BUFFERS:
             old = getattr(self, name)
             rows = given[name].to(old) if name in given else old.new_zeros(num_new, *old.shape[1:])
             setattr(self, name, torch.cat([old[kept_rows], rows]))
+        return {name: (kept_rows, num_new) for name in ANCHOR_GROUPS}
 
     # ----- introspection ----------------------------------------------------------------------------
 
@@ -470,15 +330,15 @@ class AnchorField(nn.Module):
         return self.anchors.detach(), self.levels
 
     def bytes_per_anchor(self) -> dict[str, int]:
-        """Memory each anchor holds: its parameters, their two Adam moments, its buffers (level, eps,
-        statistics) and its place in the culling chunks."""
+        """Memory each anchor of the field holds: its parameters, their two Adam moments, its buffers (level,
+        drawn, eps) and its place in the culling chunks (the strategy's statistics are the strategy's)."""
         def row_bytes(tensor: Tensor) -> int:
             return math.prod(tensor.shape[1:]) * tensor.element_size()
 
         parameters = sum(row_bytes(getattr(self, attr)) for attr in ANCHOR_GROUPS.values())
         buffers = sum(row_bytes(getattr(self, name)) for name in ANCHOR_BUFFERS)
         chunks = 2 * torch.empty((), dtype=torch.long).element_size()  # order and chunk_of
-        return {"parameters": parameters, "adam": 2 * parameters, "statistics": buffers, "culling": chunks,
+        return {"parameters": parameters, "adam": 2 * parameters, "buffers": buffers, "culling": chunks,
                 "total": 3 * parameters + buffers + chunks}
 
     def stats(self) -> dict[str, float]:

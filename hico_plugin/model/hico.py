@@ -34,6 +34,8 @@ from hico_plugin.model.effects import (EFFECTS, RENAMED_EFFECTS, EffectInputs, c
 from hico_plugin.model.effects.environment import EnvironmentConfig
 from hico_plugin.rasterizer import RenderOutputs
 from hico_plugin.rasterizer.renderer import RendererConfig
+from hico_plugin.strategy import STRATEGIES
+from hico_plugin.strategy.octree import BUFFERS as OCTREE_STRATEGY_BUFFERS
 
 EVAL_OUTPUTS = ("rgb", "alpha", "depth", "normal", "distance", "plane_depth", "depth_normal")
 
@@ -107,8 +109,10 @@ class HiCoModelConfig(InstantiateConfig):
     plug-in effect's groups not listed here train at the rates the effect sets)."""
 
     def validate(self) -> None:
-        """A HicoError for a bad --model.effects, before the dataset is read (the trainer's validate)."""
+        """A HicoError for a bad --model.effects or densification strategy, before the dataset is read
+        (the trainer's validate)."""
         parse_effects(self.effects)
+        STRATEGIES.get(self.field.densify.strategy)
 
     def checkpoint_bytes(self, num_points: int) -> int:
         """A generous size of a training checkpoint of this model grown from ``num_points`` seed points,
@@ -160,7 +164,8 @@ class HiCoModel(nn.Module):
                                         train_cameras=_subset(train_cameras, train_ids),
                                         num_train_cameras=len(train_ids), schedule_scale=scale,
                                         distances=dataset.camera_distance_range(octree.dist_ratio, octree.max_points))
-        memory = self.field.bytes_per_anchor()
+        self.strategy = field_config.densify.setup(field=self.field, schedule_scale=scale)
+        memory = self.bytes_per_anchor()
         print(f"field: {self.field.num_anchors:,} anchors at {memory['total']} bytes each (parameters "
               f"{memory['parameters']}, Adam moments {memory['adam']}, statistics {memory['statistics']}, "
               f"culling {memory['culling']})")
@@ -320,18 +325,32 @@ class HiCoModel(nn.Module):
             if grad is None:
                 continue
             # The loss is a batch mean; the statistic is defined on one view's loss.
-            self.field.accumulate_stats(gaussians, grad * batch_size, out.radii, camera, step)
+            self.strategy.step_post_backward(self.field, gaussians, grad * batch_size, out.radii, camera, step)
 
     def after_optimizer_step(self, step: int, optimizers: Any) -> None:
         self.field.after_update()
-        if not self.field.is_densify_step(step):
+        if not self.strategy.is_adjust_step(step):
             return
         # Every worker must grow and prune identically: sum the statistics over workers first.
-        self.field.sync_stats(all_reduce_sum_)
-        resized = self.field.densify(step)
+        self.strategy.sync(all_reduce_sum_)
+        resized = self.strategy.step_post_update(self.field, step)
         groups = self.field.param_groups()
         for group, (kept_rows, num_new) in resized.items():
             optimizers.resize_group(group, groups[group], kept_rows, num_new)
+
+    @torch.no_grad()
+    def keep_anchors(self, rows: Tensor) -> None:
+        """Keep only the anchors ``rows`` [R] long (ascending), with the strategy's statistics of them
+        (a model of part of a scene; the optimizers, if any, are the caller's to resize)."""
+        self.field.keep(rows)
+        self.strategy.keep(rows)
+
+    def bytes_per_anchor(self) -> dict[str, int]:
+        """Memory each anchor holds: the field's (parameters, Adam moments, buffers, culling) and the
+        strategy's statistics; the buffers count as statistics."""
+        memory = self.field.bytes_per_anchor()
+        statistics = memory.pop("buffers") + self.strategy.bytes_per_anchor()
+        return {**memory, "statistics": statistics, "total": memory["total"] + self.strategy.bytes_per_anchor()}
 
     @torch.no_grad()
     def eval_view(self, camera: Camera, image: Tensor, gt: dict[str, Tensor]) -> dict[str, Any]:
@@ -388,6 +407,10 @@ def _effect_keys_of_older_checkpoints(module: nn.Module, state_dict: dict[str, A
     for old, new in (("sky.", "effects.environment."), ("colour.", "effects.exposure."), *renamed):
         for key in [k for k in state_dict if k.startswith(prefix + old)]:
             state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
+    # Checkpoints written before densification became a strategy held its statistics in the field.
+    for name in OCTREE_STRATEGY_BUFFERS:
+        if prefix + "field." + name in state_dict:
+            state_dict[prefix + "strategy." + name] = state_dict.pop(prefix + "field." + name)
 
 
 def _subset(cameras: Cameras, ids: Tensor) -> Cameras:

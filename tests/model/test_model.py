@@ -200,8 +200,8 @@ def test_one_schedule_scale_and_one_distance_range_reach_the_field_and_the_losse
     assert scaled.field.schedule_scale == pytest.approx(0.01) and fixed.field.schedule_scale == 1.0
     assert scaled.losses.components["dngc"].start_step == round(dngc.start_step * 0.01)
     assert fixed.losses.components["dngc"].start_step == dngc.start_step
-    assert scaled.field.densify_start == round(scaled.config.field.densify.start_step * 0.01)
-    assert fixed.field.densify_start == fixed.config.field.densify.start_step
+    assert scaled.strategy.start == round(scaled.config.field.densify.start_step * 0.01)
+    assert fixed.strategy.start == fixed.config.field.densify.start_step
 
     levels = level_count(*tiny.camera_distance_range())
     assert scaled.field.grid.num_levels == levels
@@ -268,3 +268,18 @@ def test_the_constant_starts_at_the_unexplained_colour_and_the_fresh_model_keeps
         output.loss.backward()
         optimizers.step(step)
     assert drawn() > 0.5 * start
+
+
+def test_checkpoints_from_before_the_strategy_load_its_statistics_from_the_field(tiny):
+    """Densification statistics were field buffers (``field.opacity_accum`` ...) before densification
+    became a strategy beside the field; such a checkpoint loads them into ``strategy.*``."""
+    model = _config().setup(dataset=tiny, total_steps=10)
+    with torch.no_grad():
+        model.strategy.offset_grad_accum.uniform_()
+        model.strategy.stat_views.fill_(7)
+    old_names = {key.replace("strategy.", "field."): value for key, value in model.state_dict().items()}
+    assert "field.offset_grad_accum" in old_names and not any(key.startswith("strategy.") for key in old_names)
+    fresh = _config().setup(dataset=tiny, total_steps=10)
+    fresh.load_state_dict(old_names)
+    for name, value in model.strategy.state_dict().items():
+        assert torch.equal(fresh.strategy.state_dict()[name], value), name

@@ -1,87 +1,19 @@
 """Level-aware anchor growing and pruning (Octree-GS's densification), as pure tensor functions.
 
-The field (field.py) owns the statistics buffers and applies the results; these functions only decide
-which offsets spawn which new anchors and which anchors are pruned.
+The strategy (octree.py) owns the statistics and applies the results to the field; these functions only
+decide which offsets spawn which new anchors and which anchors are pruned.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
 
-from hico_plugin.config import InstantiateConfig
 from hico_plugin.field.context_graph import ParentRule, cell_keys, dense_cell_ids, parent_edges
 from hico_plugin.field.octree import OctreeGrid, visibility_fraction
-
-
-@dataclass
-class DensifyConfig(InstantiateConfig):
-    """Anchor growing / pruning schedule and thresholds. Step values are optimizer steps for a run of
-    ``FieldConfig.reference_steps`` steps and scale with the run's length."""
-
-    enabled: bool = True
-    """Grow and prune anchors during training."""
-    start_step: int = 500
-    """First step at which anchors are adjusted (CityGS-X: 500)."""
-    interval: int = 100
-    """Steps between adjustments (CityGS-X: 100)."""
-    stop_step: int = 25_000
-    """Last step of statistics and adjustments. CityGS-X keeps a fixed 50k-image horizon (so a 30k run
-    densifies to its end); Octree-GS stops at 25k of 40k; we stop at 25k of the 30k reference run so the
-    last anchors get trained."""
-    grad_threshold: float = 2e-4
-    """tau: mean NDC-space gradient norm above which an offset spawns an anchor (level 0)."""
-    success_threshold: float = 0.8
-    """An offset's gradient counts once it was seen in > interval x views/step x this x 0.5 views;
-    an anchor is judged for pruning once seen in > interval x views/step x this views."""
-    update_ratio: float = 0.2
-    """Level l's threshold is tau x u^l with u = b^update_ratio; g >= tau_l x u grows one level finer."""
-    extra_ratio: float = 0.25
-    """eps_i is raised when the anchor's mean gradient >= tau_l x extra_ratio."""
-    extra_up: float = 0.01
-    """Increment of the extra level eps_i."""
-    min_opacity: float = 0.005
-    """Prune anchors whose mean summed child opacity per view is below this."""
-    max_log_scale: float = 0.05
-    """On every prune, the anchors' log scale factors s[3:6] are clamped to at most this."""
-    keep_ancestors: bool = True
-    """Keep the octree a tree for CLCA's trilinear lookup: after growing and pruning, an anchor none of
-    whose candidate parents holds an anchor gets one back (a pruned one is kept, else a new anchor at
-    its nearest parent grid point, with its feature), so no anchor loses its parent context. Used only
-    when CLCA is on with the trilinear rule, unless keep_ancestors_without_context is set."""
-    draw_ancestors: bool = False
-    """Draw the ancestors the kept tree adds (revived and new parents) like any anchor. Off, they only
-    lend their features to CLCA's lookup; drawn, they add coarse Gaussians off the surface, trading
-    mesh quality for PSNR (benchmarks/RESULTS.md). An ancestor is drawn once growth asks for its cell."""
-    max_anchors: int = 0
-    """Budget of drawn anchors (0: none). Once growth would pass it, an adjustment adds only the new
-    cells with the largest offset gradients, as many as fit after its pruning; pruning frees room. A
-    fixed budget filled by score is Taming 3DGS's and gsplat's MCMC ``cap_max``: the step's cost stops
-    rising with the anchors where the budget is reached."""
-    max_anchors_per_seed: float = 0.0
-    """The same budget as a multiple of the anchors the octree starts with (0: none; Taming 3DGS's
-    "multiplier" mode): it follows the capture's size. With max_anchors too, the smaller counts."""
-    keep_ancestors_without_context: bool = False
-    """Keep the tree also where no trilinear CLCA lookup reads it (context kind none, or the paper's
-    lookup): the anchors the tree adds, without the context; the control that tells the two apart in
-    CLCA's ablation."""
-
-    def budget(self, initial_anchors: int) -> int | None:
-        """The drawn-anchor budget of a field that started with ``initial_anchors``; None: unbounded."""
-        limits = [self.max_anchors] if self.max_anchors > 0 else []
-        if self.max_anchors_per_seed > 0:
-            limits.append(int(self.max_anchors_per_seed * initial_anchors))
-        return min(limits) if limits else None
-
-    def keeps_tree(self, context: Any) -> bool:
-        """Whether densification keeps the octree a tree for the field whose context config is
-        ``context``: where a nesting CLCA lookup reads it (``keep_ancestors``), or everywhere with
-        ``keep_ancestors_without_context``."""
-        read = context.kind != "none" and context.parent_rule.nests
-        return self.keep_ancestors and (self.keep_ancestors_without_context or read)
+from hico_plugin.strategy.base import DensifyConfig
 
 
 def offset_gradients(grad_accum: Tensor, denom: Tensor, min_observations: float) -> tuple[Tensor, Tensor]:

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from hico_plugin.field import AnchorField
-from hico_plugin.field.densify import GrownAnchors, close_ancestors, orphan_edges
+from hico_plugin.strategy.octree import draw_hidden_ancestors
+from hico_plugin.strategy.rules import GrownAnchors, close_ancestors, orphan_edges
 from hico_plugin.field.octree import OctreeGrid
 from hico_plugin.presets import PRESETS
 
@@ -159,7 +160,8 @@ def test_the_tree_is_kept_where_the_trilinear_lookup_reads_it_or_on_request(pres
     config = PRESETS[preset][1].model.field
     config = dataclasses.replace(config, densify=dataclasses.replace(config.densify, **densify_changes))
     positions, levels = anchors((0, 1, 1, 1), (1, 2, 2, 2))
-    assert AnchorField(config, positions, levels, GRID, torch.zeros(1, 3)).keeps_ancestors is keeps
+    field = AnchorField(config, positions, levels, GRID, torch.zeros(1, 3))
+    assert config.densify.setup(field=field).keeps_ancestors is keeps
 
 
 def _clca_field(*rows, **densify_changes):
@@ -167,26 +169,28 @@ def _clca_field(*rows, **densify_changes):
     config = dataclasses.replace(config, densify=dataclasses.replace(config.densify, **densify_changes))
     positions, levels = anchors(*rows)
     field = AnchorField(config, positions, levels, GRID, torch.zeros(1, 3))
-    field.densify_start, field.densify_interval, field.densify_stop = 0, 1, 100
-    return field
+    strategy = config.densify.setup(field=field)
+    strategy.start, strategy.interval, strategy.stop = 0, 1, 100
+    return field, strategy
 
 
-def _densify_with_opacity(field, step, opacity_per_view):
+def _densify_with_opacity(pair, step, opacity_per_view):
     """One adjustment at ``step`` after 10 views in which every anchor was seen, with these mean
     summed opacities (below min_opacity = pruned); no offset is eligible to grow."""
-    field.stat_views.fill_(10)
-    field.last_adjust_step.fill_(step - 1)
-    field.anchor_denom.fill_(10.0)
-    field.opacity_accum.copy_(10.0 * torch.tensor(opacity_per_view))
-    field.offset_denom.zero_()
-    return field.densify(step)
+    field, strategy = pair
+    strategy.stat_views.fill_(10)
+    strategy.last_adjust_step.fill_(step - 1)
+    strategy.anchor_denom.fill_(10.0)
+    strategy.opacity_accum.copy_(10.0 * torch.tensor(opacity_per_view))
+    strategy.offset_denom.zero_()
+    return strategy.step_post_update(field, step)
 
 
 def test_a_kept_ancestor_lends_its_context_but_is_not_drawn_and_goes_when_no_anchor_needs_it():
     # A (level 0) -> B (level 1) -> C (level 2); B's opacity is too low, but C needs it as a parent
-    field = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3))
-    assert field.keeps_ancestors and not field.config.densify.draw_ancestors
-    _densify_with_opacity(field, 1, [1.0, 0.0, 1.0])
+    pair = field, strategy = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3))
+    assert strategy.keeps_ancestors and not field.config.densify.draw_ancestors
+    _densify_with_opacity(pair, 1, [1.0, 0.0, 1.0])
     assert field.num_anchors == 3 and field.drawn.tolist() == [True, False, True]
     every = torch.arange(3)
     assert field.parent_found()[2]  # C reads B's context
@@ -198,22 +202,22 @@ def test_a_kept_ancestor_lends_its_context_but_is_not_drawn_and_goes_when_no_anc
     without_b = field.enhanced_features(torch.tensor([0, 2]))[1]
     assert not torch.allclose(with_b, without_b)
     # C goes too: nothing needs B any more, so it goes with it (it is never judged by its own opacity)
-    _densify_with_opacity(field, 2, [1.0, 0.0, 0.0])
+    _densify_with_opacity(pair, 2, [1.0, 0.0, 0.0])
     assert field.num_anchors == 1 and field.drawn.tolist() == [True]
 
 
 def test_growth_into_a_kept_ancestors_cell_draws_it_and_adds_no_second_anchor():
-    field = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3))
-    _densify_with_opacity(field, 1, [1.0, 0.0, 1.0])
+    pair = field, _ = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3))
+    _densify_with_opacity(pair, 1, [1.0, 0.0, 1.0])
     b_feature = field.anchor_features.detach()[1].clone()
     asked, asked_levels = anchors((1, 1, 1, 1), (1, 0, 0, 0))  # B's cell and a free one
-    rest = field._draw_hidden_ancestors(GrownAnchors(asked, asked_levels, torch.ones(2, field.anchor_features.shape[1])))
+    rest = draw_hidden_ancestors(field, GrownAnchors(asked, asked_levels, torch.ones(2, field.anchor_features.shape[1])))
     assert field.drawn.tolist() == [True, True, True]
     assert rest.levels.tolist() == [1] and torch.equal(rest.positions, asked[1:])
     assert torch.equal(field.anchor_features.detach()[1], b_feature)  # B keeps its training
 
 
 def test_drawn_ancestors_are_the_previous_behaviour():
-    field = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3), draw_ancestors=True)
-    _densify_with_opacity(field, 1, [1.0, 0.0, 1.0])
+    pair = field, _ = _clca_field((0, 0, 0, 0), (1, 1, 1, 1), (2, 3, 3, 3), draw_ancestors=True)
+    _densify_with_opacity(pair, 1, [1.0, 0.0, 1.0])
     assert field.num_anchors == 3 and field.drawn.all()
