@@ -348,9 +348,9 @@ class HiCoModel(nn.Module):
     def bytes_per_anchor(self) -> dict[str, int]:
         """Memory each anchor holds: the field's (parameters, Adam moments, buffers, culling) and the
         strategy's statistics; the buffers count as statistics."""
-        memory = self.field.bytes_per_anchor()
-        statistics = memory.pop("buffers") + self.strategy.bytes_per_anchor()
-        return {**memory, "statistics": statistics, "total": memory["total"] + self.strategy.bytes_per_anchor()}
+        memory, strategy = self.field.bytes_per_anchor(), self.strategy.bytes_per_anchor()
+        buffers = memory.pop("buffers")
+        return {**memory, "statistics": buffers + strategy, "total": memory["total"] + strategy}
 
     @torch.no_grad()
     def eval_view(self, camera: Camera, image: Tensor, gt: dict[str, Tensor]) -> dict[str, Any]:
