@@ -71,7 +71,7 @@ def main(work: Path) -> None:
 
     kernels = work / "kernels"
     shutil.rmtree(kernels, ignore_errors=True)
-    stale = kernels / EXTENSION.build_dir().name  # the compositor's build folder under HICO_KERNEL_DIR
+    stale = kernels / EXTENSION.build_dir().name  # the compositor's build folder under $HICO_CACHE_DIR/kernels
     stale.mkdir(parents=True)
     (stale / "lock").write_text("")
     render = ("import torch\nfrom hico_plugin.rasterizer import rasterize\n"
@@ -79,7 +79,7 @@ def main(work: Path) -> None:
               " torch.ones(1), torch.ones(1, 3), torch.eye(4), torch.tensor([[60.0, 0, 33], [0, 60, 25], [0, 0, 1]]),"
               " 64, 48, compositor='fused', use_compile=False)\nprint('rendered')\n")
     env = {k: v for k, v in ENV.items() if k != "HICO_NO_FUSED"}
-    env["HICO_KERNEL_DIR"] = str(kernels)
+    env["HICO_CACHE_DIR"] = str(work)
     result = run([sys.executable, "-c", render], env=env, pick="stale")
     row("stale kernel build lock (killed build), then a render", result, f"; rendered: {'rendered' in result[3].stdout}")
 

@@ -2,7 +2,7 @@
 
 A torch extension (``loader="torch"``) for the compositor, which needs ATen; a plain ``extern "C"`` library
 (``loader="ctypes"``, one compiler call, no torch headers) for the per-pixel kernels. Each build has its own
-folder per package, torch, source and flags (under ``$HICO_KERNEL_DIR`` or ``~/.cache/hico_plugin/kernels``), an
+folder per package, torch, source and flags (under ``storage.cache_dir("kernels")``), an
 ``flock`` and a child process bounded by ``BUILD_TIMEOUT_SECONDS``; one that fails, times out or cannot start
 within ``BUILD_WAIT_SECONDS`` leaves the torch twin in use. ``HICO_NO_FUSED=1`` turns all off.
 """
@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -41,6 +42,10 @@ FIRST_BUILD_NOTE = "hico: building the CPU kernels, first run only (a minute or 
 """Printed before the first build into a kernels folder in this process, so a first run says why it waits
 (the two torch extensions take most of that time, the plain libraries seconds)."""
 _announced_roots: set[Path] = set()
+DTYPE_SUFFIXES = {torch.float32: "f32", torch.float64: "f64"}
+"""The dtypes the plain libraries compute in, and each one's function-name suffix (``hico_ssim_forward_f32``)."""
+Signature = tuple[Sequence[Any], Any]
+"""A C function's ``ctypes`` argument types and return type (None for void)."""
 
 # Run by the child process: torch's loader compiles (or finds up to date) and imports the module.
 _TORCH_BUILD_SCRIPT = """
@@ -65,20 +70,26 @@ def build_timeout() -> float:
 
 
 class NativeKernel:
-    """One C++ source built once per machine and loaded once per process (``get()`` is None when it
-    cannot be built; ``error`` then says why).
+    """C++ sources built into one module once per machine and loaded once per process (``get()`` is None
+    when it cannot be built; ``error`` then says why).
 
-    name: the module / library name; source: the .cpp file; what: the kernel in words, for the one
-    line printed when it cannot be built; fallback: what is used instead, for that line; loader:
-    "torch" (an extension module) or "ctypes" (a shared library of C functions).
+    name: the module / library name; sources: the .cpp file, or several compiled into one module; what:
+    the kernel in words, for the one line printed when it cannot be built; fallback: what is used instead,
+    for that line; loader: "torch" (an extension module) or "ctypes" (a shared library of C functions);
+    functions: a plain library's C functions and their ``Signature``, set once it loads, a name holding
+    ``{dtype}`` standing for one function per ``DTYPE_SUFFIXES`` entry.
     """
 
-    def __init__(self, name: str, source: Path, what: str, fallback: str, loader: str = "ctypes",
-                 flags: list[str] | None = None):
+    def __init__(self, name: str, sources: Path | Sequence[Path], what: str, fallback: str, loader: str = "ctypes",
+                 flags: list[str] | None = None, functions: dict[str, Signature] | None = None):
         if loader not in ("torch", "ctypes"):
             raise ValueError(f"loader must be 'torch' or 'ctypes', got {loader!r}")
-        self.name, self.source, self.what, self.fallback, self.loader = name, Path(source), what, fallback, loader
+        if functions and loader != "ctypes":
+            raise ValueError("only a plain library (loader='ctypes') declares its functions' signatures")
+        self.name, self.what, self.fallback, self.loader = name, what, fallback, loader
+        self.sources = (Path(sources),) if isinstance(sources, (str, os.PathLike)) else tuple(map(Path, sources))
         self.flags = ["-O3", "-fopenmp", *vector_flags()] if flags is None else list(flags)
+        self.functions = dict(functions or {})
         self.module: Any = None
         self.error: str | None = None
 
@@ -88,31 +99,39 @@ class NativeKernel:
                 self.error = "disabled by HICO_NO_FUSED=1"
                 return None
             try:
-                self.module = self._build(self.build_dir())
+                module = self._build(self.build_dir())
             except Exception as err:  # noqa: BLE001 - no compiler / headers / hung build: use the torch twin
                 last_line = (str(err).strip().splitlines() or [""])[-1]  # a build log ends with the cause
                 self.error = f"{type(err).__name__}: {last_line}"
                 print(f"hico: the {self.what} could not be built, using {self.fallback}: {self.error}",
                       file=sys.stderr, flush=True)
+            else:
+                self.module = self._typed(module)
         return self.module
+
+    def function(self, name: str, dtype: torch.dtype) -> Any:
+        """The built library's function ``name`` for ``dtype`` (its ``{dtype}`` filled in), typed."""
+        return getattr(self.get(), name.format(dtype=DTYPE_SUFFIXES[dtype]))
 
     def available(self) -> bool:
         """Whether the kernel is built (building it on the first call)."""
         return self.get() is not None
 
     def build_dir(self) -> Path:
-        """The private build folder of this package version + torch version + kernel source + flags."""
+        """The private build folder of this package version + torch version + kernel sources + the headers
+        they may include (``INCLUDE_DIR``'s and those beside them) + flags."""
         from hico_plugin import __version__
+        from hico_plugin.storage import cache_dir
 
-        digest = hashlib.sha256(self.source.read_bytes() + repr((self.loader, self.flags)).encode())
-        for header in sorted(INCLUDE_DIR.glob("*.h")):
+        first, *others = self.sources  # hashed as a lone source always was: one-source builds stay cached
+        digest = hashlib.sha256(first.read_bytes() + repr((self.loader, self.flags)).encode())
+        for source in others:
+            digest.update(source.name.encode() + source.read_bytes())
+        folders = dict.fromkeys([INCLUDE_DIR, *(source.parent for source in self.sources)])
+        for header in (header for folder in folders for header in sorted(folder.glob("*.h"))):
             digest.update(header.name.encode() + header.read_bytes())
         key = f"{self.name}-{__version__}_torch-{torch.__version__}_{digest.hexdigest()[:12]}".replace("+", "-")
-        root = os.environ.get("HICO_KERNEL_DIR")
-        if root:
-            return Path(root) / key
-        cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-        return cache / "hico_plugin" / "kernels" / key
+        return cache_dir("kernels") / key
 
     def _build(self, folder: Path) -> Any:
         """Build (once) and load the kernel in ``folder``; TimeoutError when another live builder holds
@@ -157,14 +176,14 @@ class NativeKernel:
     def _command(self, folder: Path) -> tuple[list[str], Path | None]:
         """The build command and, for a plain library, the file it writes."""
         if self.loader == "torch":
-            args = {"name": self.name, "sources": [str(self.source)], "build_directory": str(folder),
+            args = {"name": self.name, "sources": list(map(str, self.sources)), "build_directory": str(folder),
                     "extra_cflags": self.flags, "extra_ldflags": ["-fopenmp"],
                     "extra_include_paths": [str(INCLUDE_DIR)]}
             return [sys.executable, "-c", _TORCH_BUILD_SCRIPT, json.dumps(args)], None
         library = folder / f"{self.name}.so"
         compiler = os.environ.get("CXX", "c++")
-        return [compiler, *self.flags, f"-I{INCLUDE_DIR}", "-fPIC", "-shared", "-std=c++17", str(self.source), "-o",
-                str(library.with_suffix(".so.tmp"))], library
+        return [compiler, *self.flags, f"-I{INCLUDE_DIR}", "-fPIC", "-shared", "-std=c++17", *map(str, self.sources),
+                "-o", str(library.with_suffix(".so.tmp"))], library
 
     def _build_in_child(self, folder: Path) -> str:
         """Compile in a child process (its own session, so ninja and the compiler die with it) and return
@@ -189,6 +208,14 @@ class NativeKernel:
             return out.strip().splitlines()[-1]
         library.with_suffix(".so.tmp").replace(library)  # a killed compiler leaves no half-written library
         return str(library)
+
+    def _typed(self, library: Any) -> Any:
+        """``library`` with the argument and return types of ``functions`` set on its functions."""
+        for name, (argtypes, restype) in self.functions.items():
+            for each in {name.format(dtype=suffix) for suffix in DTYPE_SUFFIXES.values()}:
+                function = getattr(library, each)
+                function.argtypes, function.restype = list(argtypes), restype
+        return library
 
     def _load(self, module_file: Path) -> Any:
         """Import the built extension module from its file (as torch's loader does, without a rebuild

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from hico_plugin.cameras import Camera, Cameras
-from hico_plugin.engine.protocol import LRSchedule
+from hico_plugin.engine.schedule import LRSchedule
 from hico_plugin.field import AnchorField, FieldConfig, OctreeGrid
 from hico_plugin.model.hico import default_optimizers
 from hico_plugin.scenes.orbits import look_at as orbit_look_at

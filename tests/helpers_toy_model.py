@@ -23,7 +23,8 @@ from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine import TrainerConfig
 from hico_plugin.engine.distributed import all_reduce_sum_
 from hico_plugin.engine.optimizers import Optimizers
-from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainBatch
+from hico_plugin.engine.protocol import StepOutput, TrainBatch
+from hico_plugin.engine.schedule import LRSchedule
 from hico_plugin.field.gather import take_rows
 
 

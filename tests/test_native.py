@@ -20,7 +20,7 @@ extern "C" void add_one(float* x, int64_t n, int threads) {
 
 
 def test_plain_library_builds_once_and_runs(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv("HICO_NO_FUSED", raising=False)
     source = tmp_path / "add_one.cpp"
     source.write_text(SOURCE)
@@ -39,10 +39,64 @@ def test_plain_library_builds_once_and_runs(tmp_path, monkeypatch, capsys):
     assert again.get() is not None and capsys.readouterr().err == ""  # built once, nothing said
 
 
+TYPED_SOURCE = """
+#include <cstdint>
+extern "C" void add_one_f32(float* x, int64_t n) { for (int64_t i = 0; i < n; ++i) x[i] += 1.0f; }
+extern "C" void add_one_f64(double* x, int64_t n) { for (int64_t i = 0; i < n; ++i) x[i] += 1.0; }
+extern "C" double half(double x) { return x / 2; }
+"""
+
+
+def test_a_plain_library_is_loaded_with_its_declared_signatures(tmp_path, monkeypatch):
+    """The declared argument and return types are set on the loaded library, one function per dtype where the
+    name holds {dtype}; a torch extension declares none."""
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("HICO_NO_FUSED", raising=False)
+    source = tmp_path / "typed.cpp"
+    source.write_text(TYPED_SOURCE)
+    kernel = NativeKernel("hico_test_typed", source, "test kernel", "nothing", functions={
+        "add_one_{dtype}": ([ctypes.c_void_p, ctypes.c_int64], None), "half": ([ctypes.c_double], ctypes.c_double)})
+    lib = kernel.get()
+    assert lib is not None, kernel.error
+    assert lib.half(3) == 1.5  # an int converted to double, a double returned: the types are set
+    for dtype, suffix in native.DTYPE_SUFFIXES.items():
+        assert getattr(lib, f"add_one_{suffix}").argtypes == [ctypes.c_void_p, ctypes.c_int64]
+        x = torch.zeros(4, dtype=dtype)
+        kernel.function("add_one_{dtype}", dtype)(pointer(x), 4)
+        assert torch.equal(x, torch.ones(4, dtype=dtype))
+    with pytest.raises(ValueError, match="loader='ctypes'"):
+        NativeKernel("hico_test_typed", source, "test kernel", "nothing", loader="torch",
+                     functions={"half": ([ctypes.c_double], ctypes.c_double)})
+
+
+def test_several_sources_build_one_library_whose_key_covers_each(tmp_path, monkeypatch, capsys):
+    """Two sources compiled into one library, calling each other; an edit of either is a new build, and
+    either failing to compile makes the kernel unavailable with one line."""
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("HICO_NO_FUSED", raising=False)
+    outer, inner = tmp_path / "outer.cpp", tmp_path / "inner.cpp"
+    outer.write_text('extern "C" int twice(int x);\nextern "C" int add_twice(int x, int y) { return x + twice(y); }\n')
+    results = []
+    for factor in (2, 3):
+        inner.write_text(f'extern "C" int twice(int x) {{ return {factor} * x; }}\n')
+        kernel = NativeKernel("hico_test_two", [outer, inner], "test kernel", "nothing",
+                              functions={"add_twice": ([ctypes.c_int, ctypes.c_int], ctypes.c_int)})
+        assert kernel.available(), kernel.error
+        results.append((kernel.build_dir(), kernel.get().add_twice(1, 3)))
+    (first_dir, first), (second_dir, second) = results
+    assert first_dir != second_dir and (first, second) == (7, 10)
+    capsys.readouterr()
+    inner.write_text("this is not C++\n")
+    broken = NativeKernel("hico_test_two", [outer, inner], "test kernel", "the torch twin")
+    assert broken.get() is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hico: the test kernel could not be built, using the torch twin: ")
+
+
 def test_the_first_build_note_is_said_once_per_process(tmp_path, monkeypatch, capsys):
     """Several kernels built into one cold cache: one note, before the first build; the torch
     extensions add their own line (their build is the long one)."""
-    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv("HICO_NO_FUSED", raising=False)
     built = []
     monkeypatch.setattr(NativeKernel, "_build_in_child", lambda self, folder: built.append(self.name) or "module.so")
@@ -57,7 +111,7 @@ def test_the_first_build_note_is_said_once_per_process(tmp_path, monkeypatch, ca
 
 
 def test_source_that_does_not_compile_is_one_line(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv("HICO_NO_FUSED", raising=False)
     source = tmp_path / "broken.cpp"
     source.write_text("this is not C++\n")
@@ -70,7 +124,7 @@ def test_source_that_does_not_compile_is_one_line(tmp_path, monkeypatch, capsys)
 
 
 def test_a_kernel_includes_the_shared_headers_and_a_changed_header_means_a_new_build(tmp_path, monkeypatch):
-    monkeypatch.setenv("HICO_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv("HICO_NO_FUSED", raising=False)
     monkeypatch.setattr(native, "INCLUDE_DIR", tmp_path / "include")
     (tmp_path / "include").mkdir()

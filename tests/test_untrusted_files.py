@@ -80,7 +80,7 @@ def test_disk_filling_up_inside_torch_save_is_one_line(tmp_path, monkeypatch):
                 raise OSError(errno.ENOSPC, "No space left on device")
             return super().write(data)
 
-    monkeypatch.setattr(checkpoints.os, "fdopen", lambda fd, mode: FillsUp(fd, "wb"))
+    monkeypatch.setattr(checkpoints, "open", lambda path, mode: FillsUp(path, "wb"), raising=False)
     with pytest.raises(HicoError, match=r"step-000000002\.ckpt: cannot write the checkpoint \(No space left"):
         save_checkpoint(folder, 2, {"step": 2, "model": {"w": torch.zeros(10_000)}}, keep_last=1)
     assert [p.name for p in folder.iterdir()] == [first.name]

@@ -25,11 +25,11 @@ from hico_plugin.bench.stage_timer import StageTimer
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.data.parser import FormatChoice
 from hico_plugin.engine import TrainerCallback, evaluate
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
 from hico_plugin.mesh import MeshExportConfig, extract_mesh, surface_results
 from hico_plugin.mesh.extract import default_voxel_size
 from hico_plugin.presets import HiCoTrainerConfig, all_presets
+from hico_plugin.storage import write_text_atomic
 
 ABLATION_PRESETS = ("octree-gs", "hico-gs-clca", "hico-gs-dngc", "hico-gs", "hico-gs-max", "hico-gs-attn")
 """The paper's ablation rows (Table 5), baseline first."""

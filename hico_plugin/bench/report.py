@@ -10,8 +10,8 @@ from typing import Any
 
 from hico_plugin.bench.seeds import format_difference, format_mean_std, values_of
 from hico_plugin.bench.stage_timer import STAGES
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import write_text_atomic
 
 RESULTS_VERSION = 1
 

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from hico_plugin.bench.run_features import analyze_features, run_features, stratified_sample
-from hico_plugin.engine.config_io import write_text_atomic
+from hico_plugin.storage import write_text_atomic
 
 
 def _pyplot():

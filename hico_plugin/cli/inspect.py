@@ -12,8 +12,8 @@ import tyro
 
 from hico_plugin.cli import run_cli
 from hico_plugin.data import DataParserConfig, Dataset
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.field.octree import level_count
+from hico_plugin.storage import write_text_atomic
 
 
 @dataclass

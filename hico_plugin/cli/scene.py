@@ -29,7 +29,7 @@ class SceneCommand:
     scene: Annotated[SceneChoice, tyro.conf.arg(name="")]
     """Which scene to generate."""
     out: Optional[Path] = None
-    """Output directory; default: the scene cache ($HICO_CACHE_DIR or ~/.cache/hico_plugin/scenes)."""
+    """Output directory; default: the scene cache, $HICO_CACHE_DIR/scenes (~/.cache/hico_plugin/scenes by default)."""
 
 
 def _dir_size(path: Path) -> int:

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import write_bytes_atomic
 
 # The bytes a complete file of each format ends with (trailing padding aside): OpenCV decodes a
 # truncated JPEG into a partly grey image with only a warning, so completeness is checked here.
@@ -97,16 +96,8 @@ def is_downscale_of(size: tuple[int, int], full: tuple[int, int]) -> bool:
 
 
 def write_png_atomic(path: Path, rgb: np.ndarray) -> None:
-    """Write uint8 [H, W, 3] RGB as PNG through a temporary file + os.replace."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write uint8 [H, W, 3] RGB as PNG through a temporary file and a rename."""
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise HicoError(f"cache file {path}: PNG encoding failed")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(encoded.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_bytes_atomic(path, encoded.tobytes())

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -14,6 +13,7 @@ import numpy as np
 import torch
 import tyro
 
+from hico_plugin import storage
 from hico_plugin.cameras import Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.data.camera_model import Camera
@@ -93,8 +93,8 @@ class DataParserConfig(InstantiateConfig):
     """Budget of the in-memory cache of decoded images (LRU, in MB); 512 holds about 90 photos at
     1600x1200. A larger capture decodes the rest again when drawn, which costs little beside a step."""
     cache_dir: Optional[Path] = None
-    """Where undistorted images are cached; default $XDG_CACHE_HOME/hico_plugin/datasets/<hash of DIR>
-    (~/.cache/...), never inside the dataset folder."""
+    """Where undistorted images are cached; default $HICO_CACHE_DIR/datasets/<hash of DIR>
+    (~/.cache/hico_plugin/...), never inside the dataset folder."""
 
     def __post_init__(self) -> None:
         # accept plain strings from Python callers and YAML configs
@@ -288,8 +288,7 @@ class DataParserConfig(InstantiateConfig):
         if self.cache_dir is not None:
             base = self.cache_dir
         else:  # never inside the user's dataset folder: it may be shared, versioned or read-only
-            user_cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "hico_plugin"
-            base = user_cache / "datasets" / hashlib.sha1(str(self.data.resolve()).encode()).hexdigest()[:12]
+            base = storage.cache_dir("datasets") / hashlib.sha1(str(self.data.resolve()).encode()).hexdigest()[:12]
         return base / f"undistorted_{key}"
 
     def _metadata(self) -> dict[str, Any]:

@@ -2,15 +2,14 @@
 
 For posed image sets without a point cloud (transforms.json without ``ply_file_path``, Mega-NeRF): SIFT on the
 CPU, matching of the pairs the poses say overlap (``pose_pairs``), then ``pycolmap.triangulate_points`` with the
-given cameras and poses fixed. Cached under the user cache directory, keyed by every input, never in the dataset
-folder; pycolmap is imported only on a cache miss.
+given cameras and poses fixed. Cached in ``storage.cache_dir("triangulation")``, keyed by every input, never in the
+dataset folder; pycolmap is imported only on a cache miss.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -23,6 +22,7 @@ import numpy as np
 from hico_plugin.data.camera_model import Camera, camera_centres
 from hico_plugin.data.checks import image_header_size
 from hico_plugin.data.images import MAX_LONG_SIDE
+from hico_plugin.storage import atomic_path, cache_dir
 
 if TYPE_CHECKING:
     import pycolmap
@@ -51,11 +51,6 @@ instead of 74 to extract, 56 s instead of 74 to match every pair)."""
 CACHE_VERSION = 2  # bump when the output for the same inputs changes
 
 
-def cache_dir() -> Path:
-    """``$XDG_CACHE_HOME/hico_plugin/triangulation`` (``~/.cache/...``)."""
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "hico_plugin" / "triangulation"
-
-
 def triangulate_known_poses(data_dir: Path, names: list[str], camera_ids: list[int],
                             cameras: dict[int, Camera], viewmats: np.ndarray, long_side: int = MAX_IMAGE_SIZE,
                             num_threads: int = -1) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +63,7 @@ def triangulate_known_poses(data_dir: Path, names: list[str], camera_ids: list[i
     be 0 when nothing matches)."""
     long_side = min(long_side, MAX_IMAGE_SIZE)
     key = _cache_key(data_dir, names, camera_ids, cameras, viewmats, long_side)
-    cached = cache_dir() / f"{key}.npz"
+    cached = cache_dir("triangulation") / f"{key}.npz"
     if cached.is_file():
         try:
             with np.load(cached, allow_pickle=False) as data:
@@ -76,14 +71,13 @@ def triangulate_known_poses(data_dir: Path, names: list[str], camera_ids: list[i
         except (OSError, ValueError, KeyError):
             pass  # a damaged cache entry is recomputed
     print(f"triangulating seed points from the {len(names)} known poses (SIFT + matching on the CPU; "
-          f"cached in {cache_dir()})", file=sys.stderr)
-    cache_dir().mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=cache_dir()))
+          f"cached in {cached.parent})", file=sys.stderr)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=cached.parent))
     try:
         points, colors = _triangulate(data_dir, names, camera_ids, cameras, viewmats, work, long_side, num_threads)
-        partial = work / "points.npz"
-        np.savez(partial, points=points, colors=colors)
-        partial.replace(cached)  # atomic: a crash never leaves a half-written entry
+        with atomic_path(cached) as partial:  # a crash never leaves a half-written entry
+            np.savez(partial, points=points, colors=colors)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return points, colors

@@ -12,7 +12,8 @@ from hico_plugin.engine.config_io import load_config, save_config
 from hico_plugin.engine.distributed import all_reduce_mean_, all_reduce_sum_, is_main_process
 from hico_plugin.engine.evaluation import evaluate, write_eval_json
 from hico_plugin.engine.optimizers import Optimizers, ParamGroupOptimizerConfig
-from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainableModel, TrainBatch, TrainDataset
+from hico_plugin.engine.protocol import StepOutput, TrainableModel, TrainBatch, TrainDataset
+from hico_plugin.engine.schedule import LRSchedule
 from hico_plugin.engine.loading import LoadedRun, load_run
 from hico_plugin.engine.trainer import Trainer, TrainerConfig, TrainResult
 

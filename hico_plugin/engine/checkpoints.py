@@ -14,7 +14,6 @@ import os
 import random
 import re
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ import torch
 
 from hico_plugin.engine.optimizers import Optimizers
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import atomic_path
 
 _CHECKPOINT_NAME = re.compile(r"^step-(\d{9})\.ckpt$")
 
@@ -51,24 +51,18 @@ def checkpoint_due(completed_steps: int, save_every: int) -> bool:
 
 
 def save_checkpoint(checkpoint_dir: Path, step: int, payload: dict[str, Any], keep_last: int) -> Path:
-    """Write ``payload`` as the checkpoint of ``step`` (temp file + ``os.replace``, so a crash never
-    leaves a torn file under the final name), then delete all but the newest ``keep_last``.
+    """Write ``payload`` as the checkpoint of ``step`` (``storage.atomic_path``, synced to disk, so a crash
+    never leaves a torn file under the final name), then delete all but the newest ``keep_last``.
 
     An OSError (disk full, read-only, permission) is a HicoError naming the path; the earlier
     checkpoints are left as they were."""
     path = checkpoint_path(checkpoint_dir, step)
-    tmp = None
     try:
-        checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=checkpoint_dir, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as stream:
+        with atomic_path(path) as tmp, open(tmp, "wb") as stream:
             torch.save(payload, stream)
             stream.flush()
             os.fsync(stream.fileno())
-        os.replace(tmp, path)
     except BaseException as err:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
         cause = _os_error(err)  # torch.save turns the stream's OSError into a RuntimeError
         if cause is not None:
             raise HicoError(f"{path}: cannot write the checkpoint ({cause.strerror or cause}); "

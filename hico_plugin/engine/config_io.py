@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import typing
-import tempfile
 from enum import Enum
 from pathlib import Path, PurePath
 from typing import Any
@@ -20,6 +19,7 @@ from typing import Any
 import yaml
 
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import write_text_atomic
 
 _DATACLASS_TAG = "!dataclass:"
 _ENUM_TAG = "!enum:"
@@ -30,8 +30,12 @@ _MOVED = {"hico_plugin.model.sky.SkyConfig": "hico_plugin.model.effects.environm
           "hico_plugin.model.effects.sky.SkyConfig": "hico_plugin.model.effects.environment.EnvironmentConfig",
           "hico_plugin.viewer.viewer.ViewerConfig": "hico_plugin.viewer.config.ViewerConfig",
           "hico_plugin.field.densify.DensifyConfig": "hico_plugin.strategy.base.DensifyConfig"}
+# Effects renamed since runs were trained, old name -> today's: an old run's config.yml names the model's
+# field by it, its --model.effects ("auto,sky=off") parses, and its checkpoint's module keys and optimizer
+# group load under the new name (model.effects).
+RENAMED_EFFECTS = {"sky": "environment"}
 # Fields renamed since runs were trained: class -> {the name older config.yml files use: today's}.
-_RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": {"sky": "environment"}}
+_RENAMED_FIELDS = {"hico_plugin.model.hico.HiCoModelConfig": RENAMED_EFFECTS}
 # Fields added after runs were trained, whose default changes what such a run means: a file without the
 # field gets the value that reproduces the run (its scene frame was not rotated, or rotated by the
 # cameras' mean up; its anchors were not kept nested, or its kept ancestors were drawn; its background was
@@ -201,16 +205,3 @@ def load_config(path: str | os.PathLike) -> Any:
     if not dataclasses.is_dataclass(config):
         raise HicoError(f"{path}: expected a config written by save_config (a !dataclass: mapping)")
     return config
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temp file in the same directory and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as stream:
-            stream.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

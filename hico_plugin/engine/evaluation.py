@@ -11,10 +11,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.engine.data import load_view
 from hico_plugin.engine.memory import release_free_memory
 from hico_plugin.engine.protocol import TrainableModel, TrainDataset
+from hico_plugin.storage import write_text_atomic
 
 
 def _scalar(value: Any) -> float | None | bool:

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from hico_plugin.engine.adam import Adam
-from hico_plugin.engine.protocol import LRSchedule
+from hico_plugin.engine.schedule import LRSchedule
 from hico_plugin.errors import HicoError
 
 ADAM_EPS = 1e-15

@@ -20,8 +20,9 @@ from typing import IO, Any
 
 from hico_plugin.engine import distributed as dist_utils
 from hico_plugin.engine.checkpoints import latest_checkpoint, newest_readable_checkpoint
-from hico_plugin.engine.config_io import save_config, write_text_atomic
+from hico_plugin.engine.config_io import save_config
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import write_text_atomic
 
 TIMESTAMP_FORMAT = "%Y-%m-%d_%H%M%S"
 LOCK_NAME = ".lock"

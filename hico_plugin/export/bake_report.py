@@ -11,12 +11,12 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.engine.data import load_view
 from hico_plugin.export.bake import BakedGaussians
 from hico_plugin.export.gaussians import gaussians_from_colmap, rows_to_gaussians
 from hico_plugin.metrics import psnr
 from hico_plugin.rasterizer import rasterize
+from hico_plugin.storage import write_text_atomic
 
 
 @torch.no_grad()
@@ -78,6 +78,5 @@ def write_bake_report(ply: Path, num_written: int, baked: BakedGaussians, model,
         **psnr_on_test_views(model, dataset, baked),
     }
     path = ply.with_name(f"{ply.stem}_report.json")
-    write_text_atomic(path, json.dumps(report, indent=2) + "\n")
-    path.chmod(0o644)  # readable by whoever may read the PLY next to it (written 0644 too)
+    write_text_atomic(path, json.dumps(report, indent=2) + "\n")  # 0644, as the PLY next to it
     return report, path

@@ -19,8 +19,8 @@ from torch import Tensor
 
 from hico_plugin.cameras import Cameras
 from hico_plugin.data.transform import SceneTransform
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import write_text_atomic
 
 MAX_FILE_BYTES = 64 * 1024 * 1024
 """A camera path of 100,000 frames is about 40 MB; anything larger is not a camera path."""

@@ -1,37 +1,22 @@
-"""Rendered frames to disk: PNGs and MP4s, each written atomically (temp file + ``os.replace``)."""
+"""Rendered frames to disk: PNGs and MP4s, each written atomically (``storage.atomic_path``)."""
 
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-
-def _temp_next_to(path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.fchmod(fd, 0o644)
-    os.close(fd)
-    return Path(tmp)
+from hico_plugin.storage import atomic_path, write_bytes_atomic
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Write ``image`` uint8 [H, W, 3] RGB as a PNG, atomically."""
-    path = Path(path)
     ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
-    tmp = _temp_next_to(path)
-    try:
-        tmp.write_bytes(encoded.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return write_bytes_atomic(path, encoded.tobytes())
 
 
 class Mp4Writer:
@@ -41,7 +26,8 @@ class Mp4Writer:
 
     def __init__(self, path: str | os.PathLike, fps: float, width: int, height: int):
         self.path = Path(path)
-        self._tmp = _temp_next_to(self.path)
+        self._target = atomic_path(self.path)  # entered here, left by close() (kept) or discard() (removed)
+        self._tmp = self._target.__enter__()
         # MPEG-4 codes even sizes only; an odd last row / column is repeated rather than cut off.
         self._padded = (width + width % 2, height + height % 2)
         self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self._padded)
@@ -64,12 +50,13 @@ class Mp4Writer:
         self._writer.release()
         written = self.available and self.count > 0 and self._tmp.stat().st_size > 0
         if written:
-            os.replace(self._tmp, self.path)
+            self._target.__exit__(None, None, None)
         else:
-            self._tmp.unlink(missing_ok=True)
+            self.discard()
         return written
 
     def discard(self) -> None:
         """Drop the unfinished video (after an error)."""
         self._writer.release()
-        self._tmp.unlink(missing_ok=True)
+        dropped = OSError(f"{self.path}: video discarded")
+        self._target.__exit__(type(dropped), dropped, None)

@@ -7,12 +7,12 @@ The layout Inria's 3DGS, SuperSplat and most splat viewers read: ``ply``, ``form
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import atomic_path
 
 # PLY property type <-> numpy little-endian dtype (both PLY spellings read, the short one written).
 _PLY_TO_NUMPY = {
@@ -38,22 +38,13 @@ def ply_header(vertices: np.ndarray) -> bytes:
 
 
 def write_ply(path: str | os.PathLike, vertices: np.ndarray) -> Path:
-    """Write the structured array ``vertices`` [N] as a binary little-endian PLY, atomically
-    (temp file in the same directory + ``os.replace``). Returns the path."""
-    path = Path(path)
+    """Write the structured array ``vertices`` [N] as a binary little-endian PLY, atomically and readable
+    by all (``storage.atomic_path``). Returns the path."""
     little = vertices.astype(vertices.dtype.newbyteorder("<"), copy=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide the export from other users
-        with os.fdopen(fd, "wb") as stream:
-            stream.write(ply_header(little))
-            stream.write(np.ascontiguousarray(little).tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_path(path) as tmp, tmp.open("wb") as stream:
+        stream.write(ply_header(little))
+        stream.write(np.ascontiguousarray(little).tobytes())
+    return Path(path)
 
 
 def read_ply(path: str | os.PathLike) -> np.ndarray:

@@ -13,13 +13,13 @@ from __future__ import annotations
 import gzip
 import os
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from hico_plugin.errors import HicoError
 from hico_plugin.export.gaussians import INRIA_FIELDS
+from hico_plugin.storage import write_bytes_atomic
 
 SPZ_MAGIC = 0x5053474E
 SPZ_VERSION = 3
@@ -78,21 +78,9 @@ def spz_bytes(rows: np.ndarray, antialiased: bool = False) -> bytes:
 
 
 def write_spz(path: str | os.PathLike, rows: np.ndarray) -> Path:
-    """Write ``spz_bytes(rows)`` to ``path`` atomically (temp file + ``os.replace``), readable by all
-    as the PLY is. Returns the path."""
-    path = Path(path)
-    data = spz_bytes(rows)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o644)
-        with os.fdopen(fd, "wb") as stream:
-            stream.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``spz_bytes(rows)`` to ``path`` atomically, readable by all as the PLY is
+    (``storage.write_bytes_atomic``). Returns the path."""
+    return write_bytes_atomic(path, spz_bytes(rows))
 
 
 def read_spz(path: str | os.PathLike) -> np.ndarray:

@@ -9,20 +9,21 @@ index_add_'s sum, the anchors split among threads (timings: benchmarks/RESULTS.m
 
 from __future__ import annotations
 
-import ctypes
 import math
-from functools import cache
+from ctypes import c_int, c_int64, c_void_p
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from hico_plugin.native import NativeKernel, pointer
+from hico_plugin.native import DTYPE_SUFFIXES, NativeKernel, pointer
 from hico_plugin.row_sparse import row_sparse
 
+# source, rows, count, row width (elements / bytes), output rows, output, threads -> status (0: done)
+_ROWS = ([c_void_p, c_void_p, c_int64, c_int64, c_int64, c_void_p, c_int], c_int)
 KERNEL = NativeKernel("hico_segment_cpu", Path(__file__).parent / "csrc" / "segment_cpu.cpp",
-                      "row-sum kernel", "torch's index_add_")
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+                      "row-sum kernel", "torch's index_add_",
+                      functions={"hico_segment_sum_{dtype}": _ROWS, "hico_place_rows": _ROWS})
 
 
 class _TakeRows(torch.autograd.Function):
@@ -51,27 +52,12 @@ def take_rows(source: Tensor, rows: Tensor, sparse_grad: bool = False) -> Tensor
     return _TakeRows.apply(source, rows, sparse_grad)
 
 
-@cache
-def _library() -> ctypes.CDLL | None:
-    lib = KERNEL.get()
-    if lib is not None:
-        for suffix in _SUFFIX.values():
-            function = getattr(lib, f"hico_segment_sum_{suffix}")
-            function.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
-                                 ctypes.c_void_p, ctypes.c_int]
-            function.restype = ctypes.c_int
-        lib.hico_place_rows.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
-                                        ctypes.c_int64, ctypes.c_void_p, ctypes.c_int]
-        lib.hico_place_rows.restype = ctypes.c_int
-    return lib
-
-
 def _placed_rows(grad: Tensor, rows: Tensor, shape: torch.Size) -> Tensor:
     """zeros(shape).index_copy_(0, rows, grad), bit for bit; in one pass where rows strictly ascend and are wide
     enough. Rows under 16 bytes (1-3 float32s) stay with torch: one copy call a row costs what the zero fill saves
     (timings: benchmarks/RESULTS.md, "Figures behind the defaults")."""
     row_bytes = math.prod(shape[1:]) * grad.element_size()
-    lib = _library() if grad.device.type == "cpu" and row_bytes >= 16 else None
+    lib = KERNEL.get() if grad.device.type == "cpu" and row_bytes >= 16 else None
     if lib is not None:
         grad, rows = grad.contiguous(), rows.contiguous()
         out = grad.new_empty(shape)
@@ -84,12 +70,11 @@ def _placed_rows(grad: Tensor, rows: Tensor, shape: torch.Size) -> Tensor:
 
 def _row_sums(grad: Tensor, rows: Tensor, num_rows: int) -> Tensor:
     """zeros(num_rows, ...).index_add_(0, rows, grad), bit for bit; in parallel where rows ascend."""
-    lib = _library() if grad.device.type == "cpu" and grad.dtype in _SUFFIX else None
-    if lib is not None:
+    if grad.device.type == "cpu" and grad.dtype in DTYPE_SUFFIXES and KERNEL.available():
         grad, rows = grad.contiguous(), rows.contiguous()
         out = grad.new_empty((num_rows, *grad.shape[1:]))
         cols = math.prod(grad.shape[1:])
-        status = getattr(lib, f"hico_segment_sum_{_SUFFIX[grad.dtype]}")(
+        status = KERNEL.function("hico_segment_sum_{dtype}", grad.dtype)(
             pointer(grad), pointer(rows), rows.numel(), cols, num_rows, pointer(out), torch.get_num_threads())
         if status == 0:
             return out

@@ -10,25 +10,18 @@ length is alpha); L_ns and L_ds are spatial means; d stays in scene units, so la
 from __future__ import annotations
 
 from dataclasses import dataclass
-from types import ModuleType
 
 import torch
 from torch import Tensor
 
 from hico_plugin.errors import HicoError
+from hico_plugin.losses import dngc_fused
 from hico_plugin.losses.base import LOSSES, LossConfig, require_images
 from hico_plugin.rasterizer.base import RenderOutputs
+from hico_plugin.rasterizer.geometry import NORMAL_EPS
 
-NORMAL_EPS = 1e-8  # a normal shorter than this is "undefined"
 KERNELS = ("auto", "fused", "torch")
 """Values of ``DNGCLossConfig.kernel``."""
-
-
-def _fused() -> ModuleType:
-    """``losses.dngc_fused``, the fused twin of the terms below (imported on use: it reads NORMAL_EPS here)."""
-    from hico_plugin.losses import dngc_fused
-
-    return dngc_fused
 
 
 def warmup_weight(step: int, start_step: int, warmup_steps: int) -> float:
@@ -129,9 +122,9 @@ class DNGCLoss:
     def terms(self, *images: Tensor) -> dict[str, Tensor]:
         """``dngc_losses(rgb, alpha, normal, depth_normal, distance, edge_beta)``, by the fused kernel when
         ``kernel`` allows it, it takes these images (CPU, float32/float64) and it is built."""
-        fused = _fused()
-        use_fused = self.config.kernel != "torch" and fused.dngc_fused_accepts(*images) and fused.dngc_fused_available()
-        return (fused.dngc_terms_fused if use_fused else dngc_losses)(*images, self.config.edge_beta)
+        use_fused = (self.config.kernel != "torch" and dngc_fused.dngc_fused_accepts(*images)
+                     and dngc_fused.dngc_fused_available())
+        return (dngc_fused.dngc_terms_fused if use_fused else dngc_losses)(*images, self.config.edge_beta)
 
     def __call__(self, outputs: RenderOutputs, target: Tensor, step: int) -> dict[str, Tensor]:
         ramp = self.warmup(step)
@@ -177,8 +170,8 @@ class DNGCLossConfig(LossConfig):
             raise HicoError("losses.dngc.start_step and losses.dngc.warmup_steps must be >= 0")
         if self.kernel not in KERNELS:
             raise HicoError(f"losses.dngc.kernel must be one of {list(KERNELS)}, got {self.kernel!r}")
-        if self.kernel == "fused" and not _fused().dngc_fused_available():
+        if self.kernel == "fused" and not dngc_fused.dngc_fused_available():
             raise HicoError(f"losses.dngc.kernel='fused' but the fused CPU DNGC kernel could not be built "
-                            f"({_fused().KERNEL.error}); install a C++ compiler or use 'auto' or 'torch'")
+                            f"({dngc_fused.KERNEL.error}); install a C++ compiler or use 'auto' or 'torch'")
         return DNGCLoss(self, int(round(self.start_step * schedule_scale)),
                         int(round(self.warmup_steps * schedule_scale)))

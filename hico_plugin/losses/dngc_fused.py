@@ -9,51 +9,36 @@ results are bitwise independent of the thread count.
 
 from __future__ import annotations
 
-import ctypes
-from functools import cache
+from ctypes import c_double, c_int, c_int64, c_void_p
 from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from hico_plugin.losses.dngc import NORMAL_EPS
-from hico_plugin.native import NativeKernel, pointer, vector_flags
+from hico_plugin.native import DTYPE_SUFFIXES, NativeKernel, pointer, vector_flags
+from hico_plugin.rasterizer.geometry import NORMAL_EPS
 
+_IMAGES = [c_void_p] * 6 + [c_int64] * 4 + [c_double] * 2  # 5 images, their strides; B, H, W, C; beta, eps
 # -fno-math-errno: GCC vectorises no loop with a sqrt that may set errno; it changes no result.
-KERNEL = NativeKernel("hico_dngc_cpu", Path(__file__).parent / "csrc" / "dngc_cpu.cpp",
-                      "fused CPU DNGC loss kernel", "the torch DNGC terms",
-                      flags=["-O3", "-fopenmp", "-fno-math-errno", *vector_flags()])
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+KERNEL = NativeKernel(
+    "hico_dngc_cpu", Path(__file__).parent / "csrc" / "dngc_cpu.cpp", "fused CPU DNGC loss kernel",
+    "the torch DNGC terms", flags=["-O3", "-fopenmp", "-fno-math-errno", *vector_flags()],
+    functions={"hico_dngc_forward_{dtype}": ([*_IMAGES, c_void_p, c_int], None),
+               "hico_dngc_backward_{dtype}": ([*_IMAGES, *[c_double] * 4, *[c_void_p] * 3, c_int], None)})
 _CHANNELS = {"alpha": 1, "normal": 3, "depth_normal": 3, "distance": 1}  # rgb: any number >= 1
-
-
-@cache
-def _library() -> ctypes.CDLL | None:
-    """The loaded kernel with its argument types set, or None when it cannot be built."""
-    lib = KERNEL.get()
-    if lib is not None:
-        ptr, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-        images = [ptr] * 6 + [i64] * 4 + [f64, f64]  # 5 images, their strides; B, H, W, C; beta, eps
-        for suffix in _SUFFIX.values():
-            forward = getattr(lib, f"hico_dngc_forward_{suffix}")
-            backward = getattr(lib, f"hico_dngc_backward_{suffix}")
-            forward.argtypes = [*images, ptr, ctypes.c_int]
-            backward.argtypes = [*images, f64, f64, f64, f64, ptr, ptr, ptr, ctypes.c_int]
-            forward.restype = backward.restype = None
-    return lib
 
 
 def dngc_fused_available() -> bool:
     """Whether the fused CPU DNGC kernel is built (building it on the first call)."""
-    return _library() is not None
+    return KERNEL.available()
 
 
 def dngc_fused_accepts(rgb: Tensor, alpha: Tensor, normal: Tensor, depth_normal: Tensor, distance: Tensor) -> bool:
     """Whether ``dngc_terms_fused`` takes these images: CPU, one dtype (float32 or float64), [H, W, K] or
     [B, H, W, K] of one leading shape, K = 1, 3, 3, 1 for alpha, normal, depth_normal, distance."""
     named = {"alpha": alpha, "normal": normal, "depth_normal": depth_normal, "distance": distance}
-    return (rgb.dim() in (3, 4) and rgb.shape[-1] >= 1 and rgb.dtype in _SUFFIX and rgb.device.type == "cpu"
+    return (rgb.dim() in (3, 4) and rgb.shape[-1] >= 1 and rgb.dtype in DTYPE_SUFFIXES and rgb.device.type == "cpu"
             and all(t.shape == rgb.shape[:-1] + (_CHANNELS[name],) and t.dtype == rgb.dtype
                     and t.device == rgb.device for name, t in named.items()))
 
@@ -67,8 +52,8 @@ def _strided(images: list[Tensor]) -> tuple[list[Tensor], Tensor]:
 
 def _call(direction: str, images: list[Tensor], strides: Tensor, beta: float, *rest) -> None:
     batch, height, width, channels = images[0].shape
-    getattr(_library(), f"hico_dngc_{direction}_{_SUFFIX[images[0].dtype]}")(
-        *(ctypes.c_void_p(t.data_ptr()) for t in images), pointer(strides), batch, height, width, channels,
+    KERNEL.function(f"hico_dngc_{direction}_{{dtype}}", images[0].dtype)(
+        *(c_void_p(t.data_ptr()) for t in images), pointer(strides), batch, height, width, channels,
         beta, NORMAL_EPS, *rest, torch.get_num_threads())
 
 

@@ -6,14 +6,13 @@ without the optional ``[mesh]`` extra.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import atomic_path
 
 
 @dataclass
@@ -85,8 +84,6 @@ def clean_mesh(mesh: TriangleMesh, min_component_triangles: int) -> TriangleMesh
 
 def write_ply(path: str | Path, mesh: TriangleMesh) -> Path:
     """Write ``mesh`` as binary little-endian PLY (float32 xyz, uchar rgb when coloured), atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     vertex_fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if mesh.vertex_colors is not None:
         vertex_fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -103,17 +100,11 @@ def write_ply(path: str | Path, mesh: TriangleMesh) -> Path:
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vertices)}"]
     header += [f"property {ply_type[dtype]} {name}" for name, dtype in vertex_fields]
     header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(("\n".join(header) + "\n").encode("ascii"))
-            handle.write(vertices.tobytes())
-            handle.write(faces.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_path(path) as tmp, tmp.open("wb") as handle:
+        handle.write(("\n".join(header) + "\n").encode("ascii"))
+        handle.write(vertices.tobytes())
+        handle.write(faces.tobytes())
+    return Path(path)
 
 
 def read_ply(path: str | Path) -> TriangleMesh:

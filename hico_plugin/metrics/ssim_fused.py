@@ -8,8 +8,8 @@ pytorch-msssim's warning, down to one pixel (which pytorch-msssim refuses).
 
 from __future__ import annotations
 
-import ctypes
 import warnings
+from ctypes import c_double, c_int, c_int64, c_void_p
 from functools import cache
 from pathlib import Path
 
@@ -17,35 +17,21 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from hico_plugin.native import NativeKernel, pointer
+from hico_plugin.native import DTYPE_SUFFIXES, NativeKernel, pointer
 
-KERNEL = NativeKernel("hico_ssim_cpu", Path(__file__).parent / "csrc" / "ssim_cpu.cpp",
-                      "fused CPU SSIM kernel", "pytorch-msssim")
+_SHAPE_AND_WINDOWS = [c_int64] * 4 + [c_void_p, c_int64] * 2  # B, H, W, C; each window and its size
+KERNEL = NativeKernel(
+    "hico_ssim_cpu", Path(__file__).parent / "csrc" / "ssim_cpu.cpp", "fused CPU SSIM kernel", "pytorch-msssim",
+    functions={"hico_ssim_forward_{dtype}": ([c_void_p, c_void_p, *_SHAPE_AND_WINDOWS, c_double, c_double,
+                                              *[c_void_p] * 4, c_int], None),
+               "hico_ssim_backward_{dtype}": ([*[c_void_p] * 6, *_SHAPE_AND_WINDOWS, c_void_p, c_int], None)})
 WIN_SIZE, WIN_SIGMA = 11, 1.5
 C1, C2 = 0.01**2, 0.03**2  # (K1 * data_range)^2, (K2 * data_range)^2 with data_range 1, as pytorch-msssim
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
-
-
-@cache
-def _library() -> ctypes.CDLL | None:
-    """The loaded kernel with its argument types set, or None when it cannot be built."""
-    lib = KERNEL.get()
-    if lib is not None:
-        ptr, i64 = ctypes.c_void_p, ctypes.c_int64
-        shape_and_windows = [i64, i64, i64, i64, ptr, i64, ptr, i64]
-        for suffix in _SUFFIX.values():
-            forward = getattr(lib, f"hico_ssim_forward_{suffix}")
-            backward = getattr(lib, f"hico_ssim_backward_{suffix}")
-            forward.argtypes = [ptr, ptr, *shape_and_windows, ctypes.c_double, ctypes.c_double, ptr, ptr, ptr, ptr,
-                                ctypes.c_int]
-            backward.argtypes = [ptr, ptr, ptr, ptr, ptr, ptr, *shape_and_windows, ptr, ctypes.c_int]
-            forward.restype = backward.restype = None
-    return lib
 
 
 def ssim_fused_available() -> bool:
     """Whether the fused CPU SSIM kernel is built (building it on the first call)."""
-    return _library() is not None
+    return KERNEL.available()
 
 
 @cache
@@ -79,7 +65,7 @@ class _FusedSSIM(torch.autograd.Function):
         partials = [pred.new_empty(batch, channels, height - win_v.numel() + 1, width - win_h.numel() + 1)
                     for _ in range(3 if ctx.needs_input_grad[0] else 0)]
         values = pred.new_empty(batch)
-        getattr(_library(), f"hico_ssim_forward_{_SUFFIX[pred.dtype]}")(
+        KERNEL.function("hico_ssim_forward_{dtype}", pred.dtype)(
             pointer(pred), pointer(target), batch, height, width, channels, pointer(win_v), win_v.numel(),
             pointer(win_h), win_h.numel(), C1, C2, pointer(values),
             *([pointer(p) for p in partials] or [None] * 3), torch.get_num_threads())
@@ -93,7 +79,7 @@ class _FusedSSIM(torch.autograd.Function):
         pred, target, d_mu, d_xx, d_xy = ctx.saved_tensors
         win_v, win_h = ctx.windows
         grad_values, grad_pred = grad_values.contiguous(), torch.empty_like(pred)  # held through the call
-        getattr(_library(), f"hico_ssim_backward_{_SUFFIX[pred.dtype]}")(
+        KERNEL.function("hico_ssim_backward_{dtype}", pred.dtype)(
             pointer(pred), pointer(target), pointer(d_mu), pointer(d_xx), pointer(d_xy),
             pointer(grad_values), *pred.shape, pointer(win_v), win_v.numel(), pointer(win_h),
             win_h.numel(), pointer(grad_pred), torch.get_num_threads())
@@ -104,8 +90,8 @@ def ssim_fused(pred: Tensor, target: Tensor) -> Tensor:
     """SSIM of images in [0, 1], as ``metrics.image.ssim``: pred, target [H, W, C] or [B, H, W, C], float32
     or float64 CPU tensors of one shape -> [] (or [B]). Differentiable w.r.t. ``pred`` only: a ``target``
     that needs a gradient is refused (use pytorch-msssim). Call ``ssim_fused_available()`` first."""
-    if (pred.shape != target.shape or pred.dim() not in (3, 4) or pred.numel() == 0 or pred.dtype not in _SUFFIX
-            or pred.device.type != "cpu"):
+    if (pred.shape != target.shape or pred.dim() not in (3, 4) or pred.numel() == 0
+            or pred.dtype not in DTYPE_SUFFIXES or pred.device.type != "cpu"):
         raise ValueError(f"ssim_fused takes non-empty float32/float64 CPU images [H, W, C] or [B, H, W, C] of one "
                          f"shape, got {tuple(pred.shape)} {pred.dtype} and {tuple(target.shape)} {target.dtype} "
                          f"on {pred.device}")

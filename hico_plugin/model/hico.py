@@ -21,7 +21,8 @@ from hico_plugin.cameras import Camera, Cameras
 from hico_plugin.config import InstantiateConfig
 from hico_plugin.engine.distributed import all_reduce_sum_
 from hico_plugin.engine.optimizers import ParamGroupOptimizerConfig
-from hico_plugin.engine.protocol import LRSchedule, StepOutput, TrainBatch
+from hico_plugin.engine.protocol import StepOutput, TrainBatch
+from hico_plugin.engine.schedule import LRSchedule
 from hico_plugin.errors import HicoError
 from hico_plugin.field.decoder import NeuralGaussians
 from hico_plugin.field.field import FieldConfig

@@ -25,6 +25,7 @@ import pycolmap
 from hico_plugin.errors import HicoError
 from hico_plugin.process.ingest import PhotoInfo
 from hico_plugin.process.stages import Report, write_json_atomic
+from hico_plugin.storage import atomic_path
 
 if TYPE_CHECKING:
     from hico_plugin.process.sfm import SfmOptions
@@ -201,9 +202,8 @@ def _vocab_tree(database: Path, path: Path, options: SfmOptions, reuse: bool,
     tree = pycolmap.VisualIndex.create(descriptors.shape[1], 64)  # SIFT's 128 dimensions, COLMAP's 64-bit embedding
     with _stderr_without("WARNING clustering"):
         tree.build(build, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, descriptors))
-    partial = path.with_suffix(".partial")
-    tree.write(partial)
-    os.replace(partial, path)
+    with atomic_path(path) as partial:
+        tree.write(partial)
     return path, words
 
 

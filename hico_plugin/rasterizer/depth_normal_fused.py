@@ -9,45 +9,31 @@ torch ops and their autograd graph. Results are bitwise independent of the threa
 
 from __future__ import annotations
 
-import ctypes
-from functools import cache
+from ctypes import c_double, c_int, c_int64, c_void_p
 from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from hico_plugin.native import NativeKernel, pointer, vector_flags
+from hico_plugin.native import DTYPE_SUFFIXES, NativeKernel, pointer, vector_flags
 from hico_plugin.rasterizer.geometry import ALPHA_EPS, DENOM_EPS
 
+_SHAPE = [c_int64] * 3 + [c_double] * 2  # C, H, W, ALPHA_EPS, DENOM_EPS
 # -fno-math-errno and -fno-trapping-math let GCC vectorise the square root and the masked divisions; neither
 # changes a result.
-KERNEL = NativeKernel("hico_depth_normal_cpu", Path(__file__).parent / "csrc" / "depth_normal_cpu.cpp",
-                      "fused CPU depth-normal kernel", "the torch depth normals",
-                      flags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *vector_flags()])
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+KERNEL = NativeKernel(
+    "hico_depth_normal_cpu", Path(__file__).parent / "csrc" / "depth_normal_cpu.cpp",
+    "fused CPU depth-normal kernel", "the torch depth normals",
+    flags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *vector_flags()],
+    functions={"hico_depth_normal_forward_{dtype}": ([*[c_void_p] * 4, *_SHAPE, c_void_p, c_void_p, c_int], None),
+               "hico_depth_normal_backward_{dtype}": ([*[c_void_p] * 5, *_SHAPE, *[c_void_p] * 3, c_int], None)})
 _SCRATCH_PLANES = 6  # the backward's scratch: dL/da, dL/db per pixel, one zero pixel at both row ends
-
-
-@cache
-def _library() -> ctypes.CDLL | None:
-    """The loaded kernel with its argument types set, or None when it cannot be built."""
-    lib = KERNEL.get()
-    if lib is not None:
-        ptr, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-        shape = [i64, i64, i64, f64, f64]  # C, H, W, ALPHA_EPS, DENOM_EPS
-        for suffix in _SUFFIX.values():
-            forward = getattr(lib, f"hico_depth_normal_forward_{suffix}")
-            backward = getattr(lib, f"hico_depth_normal_backward_{suffix}")
-            forward.argtypes = [ptr, ptr, ptr, ptr, *shape, ptr, ptr, ctypes.c_int]
-            backward.argtypes = [ptr, ptr, ptr, ptr, ptr, *shape, ptr, ptr, ptr, ctypes.c_int]
-            forward.restype = backward.restype = None
-    return lib
 
 
 def depth_normal_fused_available() -> bool:
     """Whether the fused CPU depth-normal kernel is built (building it on the first call)."""
-    return _library() is not None
+    return KERNEL.available()
 
 
 def depth_normal_fused_accepts(normal: Tensor, distance: Tensor, alpha: Tensor, Ks: Tensor) -> bool:
@@ -56,7 +42,7 @@ def depth_normal_fused_accepts(normal: Tensor, distance: Tensor, alpha: Tensor, 
     num_cams, height, width = normal.shape[:3] if normal.dim() == 4 else (-1, -1, -1)
     shapes = [(normal, (num_cams, height, width, 3)), (distance, (num_cams, height, width, 1)),
               (alpha, (num_cams, height, width, 1)), (Ks, (num_cams, 3, 3))]
-    return (normal.dtype in _SUFFIX and not Ks.requires_grad
+    return (normal.dtype in DTYPE_SUFFIXES and not Ks.requires_grad
             and all(tuple(t.shape) == shape and t.dtype == normal.dtype and t.device.type == "cpu"
                     for t, shape in shapes))
 
@@ -66,7 +52,7 @@ class _FusedDepthNormal(torch.autograd.Function):
     def forward(ctx, normal: Tensor, distance: Tensor, alpha: Tensor, Ks: Tensor) -> Tensor:
         num_cams, height, width, _ = normal.shape
         depth, out = normal.new_empty(num_cams, height, width), torch.empty_like(normal)
-        getattr(_library(), f"hico_depth_normal_forward_{_SUFFIX[normal.dtype]}")(
+        KERNEL.function("hico_depth_normal_forward_{dtype}", normal.dtype)(
             pointer(normal), pointer(distance), pointer(alpha), pointer(Ks), num_cams, height, width, ALPHA_EPS,
             DENOM_EPS, pointer(depth), pointer(out), torch.get_num_threads())
         ctx.save_for_backward(normal, alpha, Ks, depth)
@@ -80,7 +66,7 @@ class _FusedDepthNormal(torch.autograd.Function):
         grad_out = grad_out.contiguous()  # held through the call
         scratch = normal.new_empty(num_cams * height * _SCRATCH_PLANES * (width + 2))
         grad_normal, grad_distance = torch.empty_like(normal), torch.empty_like(alpha)
-        getattr(_library(), f"hico_depth_normal_backward_{_SUFFIX[normal.dtype]}")(
+        KERNEL.function("hico_depth_normal_backward_{dtype}", normal.dtype)(
             pointer(normal), pointer(alpha), pointer(Ks), pointer(depth), pointer(grad_out), num_cams, height,
             width, ALPHA_EPS, DENOM_EPS, pointer(scratch), pointer(grad_normal), pointer(grad_distance),
             torch.get_num_threads())

@@ -1,5 +1,6 @@
-"""The fused CPU kernels: csrc/composite_cpu.cpp, a torch extension built on first use (``hico_plugin.native``;
-needs a C++ compiler, as torch.compile on CPU does); without it the renderer uses the torch compositor, saying so.
+"""The fused CPU kernels: csrc/composite_cpu.cpp (the compositor) and csrc/binning_cpu.cpp (the tile binning), one
+torch extension built on first use (``hico_plugin.native``; needs a C++ compiler, as torch.compile on CPU does);
+without it the renderer uses the torch compositor, saying so.
 
 ``composite_fused`` has ``composite.composite``'s contract (the reference and fallback) in one pass per pixel with
 early termination, so deep tiles cost what is visible, not what is binned; ``bin_gaussians_fused`` returns exactly
@@ -20,7 +21,8 @@ from hico_plugin.rasterizer.tiling import TileBins
 
 T_MIN = float(torch.tensor(LOG_T_MIN, dtype=torch.float64).exp())  # the torch version's cut, 1e-4
 
-EXTENSION = NativeKernel("hico_composite_cpu", Path(__file__).parent / "csrc" / "composite_cpu.cpp",
+_CSRC = Path(__file__).parent / "csrc"
+EXTENSION = NativeKernel("hico_composite_cpu", [_CSRC / "composite_cpu.cpp", _CSRC / "binning_cpu.cpp"],
                          "fused CPU compositor", "the torch one (slower)", loader="torch")
 
 

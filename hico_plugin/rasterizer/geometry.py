@@ -16,6 +16,7 @@ from hico_plugin.rasterizer.projection import quat_to_rotmat
 
 ALPHA_EPS = 1e-6  # below this accumulated alpha a pixel counts as empty (any drawn pixel has >= 1/255)
 DENOM_EPS = 1e-6  # plane depth is undefined where the composited normal is (nearly) parallel to the ray
+NORMAL_EPS = 1e-8  # a rendered or depth normal shorter than this is "undefined" (DNGC skips it)
 
 
 def gaussian_normals(quats: Tensor, scales: Tensor, means_cam: Tensor, viewmats: Tensor

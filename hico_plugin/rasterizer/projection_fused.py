@@ -9,46 +9,31 @@ rounding, in one pass per (Gaussian, camera) each way instead of a few hundred t
 
 from __future__ import annotations
 
-import ctypes
-from functools import cache
+from ctypes import c_double, c_int, c_int64, c_void_p
 from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from hico_plugin.native import NativeKernel, pointer, vector_flags
+from hico_plugin.native import DTYPE_SUFFIXES, NativeKernel, pointer, vector_flags
 from hico_plugin.rasterizer.base import FAR, NEAR
 from hico_plugin.rasterizer.projection import (
     COV2D_BLUR, DET_MIN, FRUSTUM_MARGIN, QUAT_NORM_MIN, Projection, opacity_reach)
 
+# C, N, width, height, near, far, COV2D_BLUR, FRUSTUM_MARGIN, DET_MIN, QUAT_NORM_MIN
+_SETTINGS = [c_int64] * 2 + [c_double] * 8
 # -fno-math-errno and -fno-trapping-math let GCC inline the square roots; neither changes a result.
-KERNEL = NativeKernel("hico_projection_cpu", Path(__file__).parent / "csrc" / "projection_cpu.cpp",
-                      "fused CPU projection kernel", "the torch projection",
-                      flags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *vector_flags()])
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
-
-
-@cache
-def _library() -> ctypes.CDLL | None:
-    """The loaded kernel with its argument types set, or None when it cannot be built."""
-    lib = KERNEL.get()
-    if lib is not None:
-        ptr, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-        # C, N, width, height, near, far, COV2D_BLUR, FRUSTUM_MARGIN, DET_MIN, QUAT_NORM_MIN
-        settings = [i64, i64, *[f64] * 8]
-        for suffix in _SUFFIX.values():
-            forward = getattr(lib, f"hico_projection_forward_{suffix}")
-            backward = getattr(lib, f"hico_projection_backward_{suffix}")
-            forward.argtypes = [*[ptr] * 6, *settings, *[ptr] * 7, ctypes.c_int]
-            backward.argtypes = [*[ptr] * 5, *settings, *[ptr] * 8, ctypes.c_int]
-            forward.restype = backward.restype = None
-    return lib
+KERNEL = NativeKernel(
+    "hico_projection_cpu", Path(__file__).parent / "csrc" / "projection_cpu.cpp", "fused CPU projection kernel",
+    "the torch projection", flags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *vector_flags()],
+    functions={"hico_projection_forward_{dtype}": ([*[c_void_p] * 6, *_SETTINGS, *[c_void_p] * 7, c_int], None),
+               "hico_projection_backward_{dtype}": ([*[c_void_p] * 5, *_SETTINGS, *[c_void_p] * 8, c_int], None)})
 
 
 def projection_fused_available() -> bool:
     """Whether the fused CPU projection kernel is built (building it on the first call)."""
-    return _library() is not None
+    return KERNEL.available()
 
 
 def projection_fused_accepts(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor,
@@ -60,14 +45,14 @@ def projection_fused_accepts(means: Tensor, quats: Tensor, scales: Tensor, opaci
     num_cams = viewmats.shape[0] if viewmats.dim() == 3 else -1
     shapes = [(means, (n, 3)), (quats, (n, 4)), (scales, (n, 3)), (opacities, (n,)), (viewmats, (num_cams, 4, 4)),
               (Ks, (num_cams, 3, 3))]
-    return (means.dtype in _SUFFIX and not viewmats.requires_grad and not Ks.requires_grad
+    return (means.dtype in DTYPE_SUFFIXES and not viewmats.requires_grad and not Ks.requires_grad
             and all(tuple(t.shape) == shape and t.dtype == means.dtype and t.device.type == "cpu"
                     for t, shape in shapes))
 
 
-def _optional_pointer(tensor: Tensor | None) -> ctypes.c_void_p:
+def _optional_pointer(tensor: Tensor | None) -> c_void_p:
     """A contiguous tensor's address, or a null pointer for a zero cotangent (None)."""
-    return ctypes.c_void_p(None) if tensor is None else pointer(tensor)
+    return c_void_p(None) if tensor is None else pointer(tensor)
 
 
 class _FusedProjection(torch.autograd.Function):
@@ -79,7 +64,7 @@ class _FusedProjection(torch.autograd.Function):
         radii = means.new_empty(num_cams, n, dtype=torch.int32)
         normals = means.new_empty(num_cams, n, 3) if with_normals else None
         distances = means.new_empty(num_cams, n) if with_normals else None
-        getattr(_library(), f"hico_projection_forward_{_SUFFIX[means.dtype]}")(
+        KERNEL.function("hico_projection_forward_{dtype}", means.dtype)(
             pointer(means), pointer(quats), pointer(scales), pointer(reach), pointer(viewmats), pointer(Ks),
             num_cams, n, *settings, pointer(means_cam), pointer(means2d), pointer(conics), pointer(extents),
             pointer(radii), _optional_pointer(normals), _optional_pointer(distances), torch.get_num_threads())
@@ -96,7 +81,7 @@ class _FusedProjection(torch.autograd.Function):
         cotangents = [None if g is None else g.contiguous()  # held through the call
                       for g in (grad_means_cam, grad_means2d, grad_conics, grad_normals, grad_distances)]
         grad_means, grad_quats, grad_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
-        getattr(_library(), f"hico_projection_backward_{_SUFFIX[means.dtype]}")(
+        KERNEL.function("hico_projection_backward_{dtype}", means.dtype)(
             pointer(means), pointer(quats), pointer(scales), pointer(viewmats), pointer(Ks), viewmats.shape[0],
             means.shape[0], *ctx.settings, *map(_optional_pointer, cotangents), pointer(grad_means),
             pointer(grad_quats), pointer(grad_scales), torch.get_num_threads())

@@ -29,22 +29,16 @@ from hico_plugin.scenes import capture_effects as fx
 from hico_plugin.scenes.base import SCENES, Scene, SceneConfig
 from hico_plugin.scenes.render import View, render_view
 from hico_plugin.scenes.sparse import FeatureSampler, SparsePoints
+from hico_plugin.storage import cache_dir, write_text_atomic
 
 if TYPE_CHECKING:
     import pycolmap
 
 GENERATOR_VERSION = 1  # bump when output for the same parameters changes, to invalidate caches
-CACHE_ENV = "HICO_CACHE_DIR"
 # The generator's working buffers, in array elements: its memory is bounded by them and by one view,
 # not by the number of views.
 SURFACE_BUFFER = 1 << 18  # surface samples gathered before they are merged into the thinned set
 VISIBILITY_CHUNK = 1 << 18  # (view, point) pairs and depth pixels per chunk of the sparse points' visibility
-
-
-def cache_root() -> Path:
-    """Where generated scenes are cached: $HICO_CACHE_DIR or ~/.cache/hico_plugin/scenes."""
-    env = os.environ.get(CACHE_ENV)
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "hico_plugin" / "scenes"
 
 
 def scene_config(name: str, **overrides: Any) -> SceneConfig:
@@ -92,14 +86,14 @@ def scene_key(name: str, config: SceneConfig) -> str:
 def generate_scene(name: str, out_dir: str | Path | None = None, **overrides: Any) -> Path:
     """Generate scene ``name`` (with parameter ``overrides``) and return its dataset directory.
 
-    With ``out_dir`` None the dataset lives in the cache (``cache_root()/<name>-<key>``) and is reused
+    With ``out_dir`` None the dataset lives in the cache (``storage.cache_dir("scenes")/<name>-<key>``) and is reused
     when already there. Output is written to a temporary directory and renamed into place, so an
     interrupted run never leaves a partial dataset.
     """
     config = scene_config(name, **overrides)
     views = f"{config.num_views} views at {config.width}x{config.height}"
     if out_dir is None:
-        final = cache_root() / f"{name}-{scene_key(name, config)}"
+        final = cache_dir("scenes") / f"{name}-{scene_key(name, config)}"
         if (final / "scene.json").is_file():
             return final
         _say(f"hico: rendering the built-in scene {name} ({views}), first run only; cached in {final.parent}")
@@ -265,9 +259,7 @@ def _write_scene(scene: Scene, out: Path, key: str, progress: Callable[[int], No
             "total": round(time.perf_counter() - t_start, 3),
         },
     }
-    tmp_json = out / "scene.json.tmp"
-    tmp_json.write_text(json.dumps(meta, indent=2))
-    os.replace(tmp_json, out / "scene.json")
+    write_text_atomic(out / "scene.json", json.dumps(meta, indent=2))
     return meta
 
 

@@ -149,7 +149,7 @@ def pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("model", sorted(DISTORTED))
 def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model, monkeypatch):
     user_cache = tmp_path / "user_cache"
-    monkeypatch.setenv("XDG_CACHE_HOME", str(user_cache))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(user_cache))
     params, opencv_coefficients = DISTORTED[model]
     size = (80, 60)
     written = write_ring_dataset(tmp_path, model=model, params=params, size=size, num_images=2, write_images=False)
@@ -185,7 +185,7 @@ def test_distorted_models_are_undistorted_to_pinhole(tmp_path, model, monkeypatc
 
     # undistorted once: the cache on disk serves later loads, even if the original changes
     assert not (tmp_path / ".hico_cache").exists()
-    cached = list((user_cache / "hico_plugin").rglob(f"{written['names'][0]}.png"))
+    cached = list(user_cache.rglob(f"{written['names'][0]}.png"))
     assert len(cached) == 1
     cv2.imwrite(str(tmp_path / "images" / written["names"][0]), np.zeros_like(distorted))
     again = DataParserConfig(data=tmp_path, test_every=0).setup()
@@ -308,11 +308,11 @@ def test_undistorted_images_are_cached_in_the_user_cache_not_the_dataset(tmp_pat
     params, _ = DISTORTED["SIMPLE_RADIAL"]
     root = tmp_path / "dataset"
     write_ring_dataset(root, model="SIMPLE_RADIAL", params=params, size=(80, 60), num_images=2)
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user_cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "user_cache"))
     dataset = DataParserConfig(data=root, test_every=0).setup()
     dataset.image(0)
     assert not (root / ".hico_cache").exists()
-    assert len(list((tmp_path / "user_cache" / "hico_plugin").rglob("view_000.png.png"))) == 1
+    assert len(list((tmp_path / "user_cache").rglob("view_000.png.png"))) == 1
 
 
 _LOAD_WITHOUT_PYCOLMAP = """
@@ -324,7 +324,8 @@ import numpy as np
 import hico_plugin.cli.train  # noqa: F401 -- the trainer's imports
 from hico_plugin.data import DataParserConfig
 from hico_plugin.data.formats.transforms import TransformsFormat
-from hico_plugin.data.triangulate import _cache_key, cache_dir
+from hico_plugin.data.triangulate import _cache_key
+from hico_plugin.storage import cache_dir
 
 assert "pycolmap" not in sys.modules, "imported with the trainer"
 pinhole, distorted, transforms = (Path(arg) for arg in sys.argv[1:])
@@ -336,8 +337,8 @@ for root in (pinhole, distorted):
 record = TransformsFormat(triangulate=False).read(transforms)
 long_side = max(max(camera.width, camera.height) for camera in record.cameras.values())  # loaded at full size
 key = _cache_key(transforms, record.names, record.camera_ids, record.cameras, record.viewmats, long_side)
-cache_dir().mkdir(parents=True)
-np.savez(cache_dir() / f"{key}.npz", points=np.random.default_rng(0).normal(size=(200, 3)),
+cache_dir("triangulation").mkdir(parents=True)
+np.savez(cache_dir("triangulation") / f"{key}.npz", points=np.random.default_rng(0).normal(size=(200, 3)),
          colors=np.zeros((200, 3), np.uint8))
 dataset = DataParserConfig(data=transforms, test_every=0).setup(announce=False)
 assert "triangulated 200" in " ".join(dataset.notes), dataset.notes
@@ -367,7 +368,7 @@ def test_loading_pinhole_distorted_and_cached_transforms_never_imports_pycolmap(
     (tmp_path / "transforms" / "transforms.json").write_text(json.dumps(
         {"fl_x": params[0], "fl_y": params[1], "cx": params[2], "cy": params[3], "w": 80, "h": 60,
          **dict(zip(("k1", "k2", "p1", "p2"), params[4:])), "frames": frames}))
-    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    env = {**os.environ, "HICO_CACHE_DIR": str(tmp_path / "cache")}
     result = subprocess.run([sys.executable, "-c", _LOAD_WITHOUT_PYCOLMAP, *(str(tmp_path / name) for name in (
         "pinhole", "distorted", "transforms"))], capture_output=True, text=True, env=env)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -60,7 +60,7 @@ def _assert_triangulated_onto_the_surface(scene, data, capsys) -> None:
 
 def test_points_triangulated_from_known_poses_lie_on_the_surface(twin, tmp_path, monkeypatch, capsys):
     scene, out = twin
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache"))
     before = sorted(p.name for p in out.rglob("*"))
     dataset = DataParserConfig(data=out, normalize=False).setup()
     err = capsys.readouterr().err
@@ -77,7 +77,7 @@ def test_points_triangulated_from_known_poses_lie_on_the_surface(twin, tmp_path,
     assert np.median(_surface_distances(scene, fallback.points.double().numpy())) > 3 * SPACING
     # cached in the user cache directory, nothing written into the dataset; the second load reuses it
     assert sorted(p.name for p in out.rglob("*")) == before
-    cached = list((tmp_path / "cache" / "hico_plugin" / "triangulation").glob("*.npz"))
+    cached = list((tmp_path / "cache" / "triangulation").glob("*.npz"))
     assert len(cached) == 1
     again = DataParserConfig(data=out, normalize=False).setup()
     assert "triangulating" not in capsys.readouterr().err
@@ -90,7 +90,7 @@ def test_a_fresh_triangulation_gives_the_same_points_every_run(twin, tmp_path, m
     _, out = twin
     runs = []
     for run in range(3):
-        monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / f"cache{run}"))
+        monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / f"cache{run}"))
         runs.append(DataParserConfig(data=out, normalize=False).setup(announce=False).points.numpy())
     assert len(runs[0]) >= MIN_POINTS
     assert all(np.array_equal(points, runs[0]) for points in runs[1:])
@@ -101,7 +101,7 @@ def test_photos_stored_at_a_downscale_of_their_camera_triangulate_onto_the_surfa
     """transforms.json may state the camera at twice the size of the files (an exact downscale, as
     ``images_2`` folders hold): keypoints are in the file's pixels, so the camera is met at that size."""
     scene, out = twin
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache"))
     meta = json.loads((out / "transforms.json").read_text())
     for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
         meta[key] *= 2
@@ -117,7 +117,7 @@ def test_meganerf_layout_is_triangulated_in_the_source_frame(twin, tmp_path, mon
     from helpers_datasets import write_meganerf
 
     scene, _ = twin
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache"))
     write_meganerf(scene, tmp_path / "mega")
     _assert_triangulated_onto_the_surface(scene, tmp_path / "mega", capsys)
 
@@ -153,7 +153,7 @@ def test_features_are_extracted_at_the_size_the_photos_are_trained_at(twin, tmp_
     from hico_plugin.data import triangulate
 
     _, out = twin
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache"))
     sizes = []
 
     def record(*args):
@@ -198,7 +198,7 @@ def test_photos_named_with_spaces_are_paired_by_their_centres(twin, tmp_path, mo
     """COLMAP's pair list cannot hold a name with a space: such a set is matched by COLMAP's spatial
     matcher on the camera centres instead, and still triangulates onto the surface."""
     scene, out = twin
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache"))
     spaced = tmp_path / "spaced"
     (spaced / "my photos").mkdir(parents=True)
     meta = json.loads((out / "transforms.json").read_text())

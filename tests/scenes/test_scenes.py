@@ -171,10 +171,10 @@ def test_multi_distance_spreads_camera_distances():
 def test_cache_hit_and_key(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("HICO_CACHE_DIR", str(tmp_path))
     first = generate_scene("tiny", num_views=3)
-    assert first.parent == tmp_path and (first / "scene.json").is_file()
+    assert first.parent == tmp_path / "scenes" and (first / "scene.json").is_file()
     # a cold cache says what the wait is, with the views as they are rendered
     assert capsys.readouterr().err.splitlines() == [
-        f"hico: rendering the built-in scene tiny (3 views at 64x48), first run only; cached in {tmp_path}",
+        f"hico: rendering the built-in scene tiny (3 views at 64x48), first run only; cached in {tmp_path / 'scenes'}",
         "  rendered 1/3 views", "  rendered 2/3 views", "  rendered 3/3 views"]
 
     def no_render(*args, **kwargs):
@@ -211,7 +211,7 @@ def test_a_crash_leaves_no_partial_scene(tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "render_view", flaky)
     with pytest.raises(RuntimeError):
         generate_scene("tiny", num_views=3)
-    assert list(tmp_path.iterdir()) == []
+    assert list((tmp_path / "scenes").iterdir()) == []
 
 
 def test_bad_parameters_are_one_line_errors(tmp_path):

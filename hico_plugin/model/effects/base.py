@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from torch import Tensor, nn
 
 from hico_plugin.analysis.evidence import DatasetEvidence, EffectFinding
+from hico_plugin.engine.config_io import RENAMED_EFFECTS
 from hico_plugin.errors import HicoError
 from hico_plugin.registry import Registry
 
@@ -99,10 +100,6 @@ class Effect:
 
 
 EFFECTS: Registry[type[Effect]] = Registry("effect")
-
-# Effects renamed since runs were trained, old name -> today's: an old run's --model.effects
-# ("auto,sky=off") parses, and its checkpoint's module keys and optimizer group load under the new name.
-RENAMED_EFFECTS = {"sky": "environment"}
 
 # Findings measured and reported for every capture that no model component simulates.
 REPORTED_ONLY = ("noise", "distortion", "multi_distance")

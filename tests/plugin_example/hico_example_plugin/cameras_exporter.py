@@ -10,9 +10,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from hico_plugin.engine.config_io import write_text_atomic
 from hico_plugin.engine.loading import LoadedRun
 from hico_plugin.export.exporters.base import EXPORTERS, Exporter, output_path
+from hico_plugin.storage import write_text_atomic
 
 
 @EXPORTERS.register("camera-poses")
